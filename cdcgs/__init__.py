@@ -1,0 +1,17 @@
+"""cdcgs: 3D Gaussian Splatting with CDC-GS densification, on NVIDIA Warp kernels (CPU and CUDA).
+
+``cdcgs.rasterize`` is the torch face; ``cdcgs.kernels`` holds the pure-Warp kernels, which import
+no torch, so that they can be launched from any Warp program.
+"""
+
+__all__ = ["RasterizeInfo", "rasterize"]
+__version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # Imported lazily so that `import cdcgs.kernels` does not pull in torch.
+    if name in __all__:
+        from . import render
+
+        return getattr(render, name)
+    raise AttributeError(f"module 'cdcgs' has no attribute {name!r}")

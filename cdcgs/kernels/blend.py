@@ -1,0 +1,175 @@
+"""Front-to-back alpha compositing of depth-sorted Gaussians per 16x16 tile, and its adjoint.
+
+Pure Warp. One thread per pixel, 256 threads (one tile) per block. The backward pass is written
+by hand: it walks each pixel's list back to front from the last contributor the forward pass
+stored, recovering transmittance by division, and accumulates per-Gaussian gradients with atomics.
+"""
+
+import warp as wp
+
+from .projection import ALPHA_THRESHOLD
+
+# Alpha is clamped here so that one Gaussian never makes a pixel fully opaque (3DGS).
+MAX_ALPHA = wp.constant(0.99)
+# Compositing stops before a Gaussian that would bring transmittance below this (3DGS).
+MIN_TRANSMITTANCE = wp.constant(1.0e-4)
+
+
+@wp.func
+def tile_pixel(tid: int, tiles_x: int):
+    """Pixel (x, y) and tile index of thread ``tid`` when each tile is a block of 256 threads."""
+    tile = tid // 256
+    local = tid - tile * 256
+    tile_y = tile // tiles_x
+    tile_x = tile - tile_y * tiles_x
+    return wp.vec3i(tile_x * 16 + local % 16, tile_y * 16 + local // 16, tile)
+
+
+@wp.kernel(enable_backward=False)
+def blend_forward_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_gauss_ids: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    depths: wp.array(dtype=float),
+    background: wp.array(dtype=wp.vec3),
+    width: int,
+    height: int,
+    tiles_x: int,
+    image_out: wp.array2d(dtype=wp.vec3),
+    transmittance_out: wp.array2d(dtype=float),
+    depth_out: wp.array2d(dtype=float),
+    last_contributor_out: wp.array2d(dtype=wp.int32),
+):
+    """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel."""
+    pix = tile_pixel(wp.tid(), tiles_x)
+    x = pix[0]
+    y = pix[1]
+    if x >= width or y >= height:
+        return
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+    start = tile_ranges[pix[2], 0]
+    end = tile_ranges[pix[2], 1]
+
+    transmittance = float(1.0)
+    color = wp.vec3(0.0, 0.0, 0.0)
+    depth = float(0.0)
+    last = start - 1
+    for k in range(start, end):
+        g = sorted_gauss_ids[k]
+        mean = means2d[g]
+        conic = conics[g]
+        dx = mean[0] - px
+        dy = mean[1] - py
+        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+        if power > 0.0:
+            continue
+        alpha = wp.min(MAX_ALPHA, opacities[g] * wp.exp(power))
+        if alpha < ALPHA_THRESHOLD:
+            continue
+        next_transmittance = transmittance * (1.0 - alpha)
+        if next_transmittance < MIN_TRANSMITTANCE:
+            break
+        weight = alpha * transmittance
+        color += weight * colors[g]
+        depth += weight * depths[g]
+        transmittance = next_transmittance
+        last = k
+
+    image_out[y, x] = color + transmittance * background[0]
+    transmittance_out[y, x] = transmittance
+    depth_out[y, x] = depth
+    last_contributor_out[y, x] = last
+
+
+@wp.kernel(enable_backward=False)
+def blend_backward_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_gauss_ids: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    depths: wp.array(dtype=float),
+    background: wp.array(dtype=wp.vec3),
+    width: int,
+    height: int,
+    tiles_x: int,
+    transmittance: wp.array2d(dtype=float),
+    last_contributor: wp.array2d(dtype=wp.int32),
+    grad_image: wp.array2d(dtype=wp.vec3),
+    grad_alpha: wp.array2d(dtype=float),
+    grad_depth: wp.array2d(dtype=float),
+    grad_means2d_out: wp.array(dtype=wp.vec2),
+    grad_conics_out: wp.array(dtype=wp.vec3),
+    grad_colors_out: wp.array(dtype=wp.vec3),
+    grad_opacities_out: wp.array(dtype=float),
+    grad_depths_out: wp.array(dtype=float),
+    absgrad_means2d_out: wp.array(dtype=wp.vec2),
+):
+    """Adjoint of ``blend_forward_kernel`` for image, alpha (= 1 - transmittance) and depth sum.
+
+    Also accumulates, per Gaussian, the sum over pixels of the absolute per-pixel gradient of its
+    2D mean (AbsGS).
+    """
+    pix = tile_pixel(wp.tid(), tiles_x)
+    x = pix[0]
+    y = pix[1]
+    if x >= width or y >= height:
+        return
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+    start = tile_ranges[pix[2], 0]
+
+    final_transmittance = transmittance[y, x]
+    t = final_transmittance
+    g_color = grad_image[y, x]
+    g_depth = grad_depth[y, x]
+    # d(color)/d(alpha_i) and d(alpha_pixel)/d(alpha_i) both carry T_final / (1 - alpha_i).
+    g_final = grad_alpha[y, x] - wp.dot(background[0], g_color)
+
+    behind_color = wp.vec3(0.0, 0.0, 0.0)  # what is composited behind Gaussian i, per unit transmittance
+    behind_depth = float(0.0)
+    prev_alpha = float(0.0)
+    prev_color = wp.vec3(0.0, 0.0, 0.0)
+    prev_depth = float(0.0)
+    k = last_contributor[y, x]
+    while k >= start:
+        g = sorted_gauss_ids[k]
+        k -= 1
+        mean = means2d[g]
+        conic = conics[g]
+        dx = mean[0] - px
+        dy = mean[1] - py
+        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+        if power > 0.0:
+            continue
+        gauss = wp.exp(power)
+        opacity = opacities[g]
+        raw_alpha = opacity * gauss
+        alpha = wp.min(MAX_ALPHA, raw_alpha)
+        if alpha < ALPHA_THRESHOLD:
+            continue
+        t = t / (1.0 - alpha)
+        behind_color = prev_alpha * prev_color + (1.0 - prev_alpha) * behind_color
+        behind_depth = prev_alpha * prev_depth + (1.0 - prev_alpha) * behind_depth
+        c = colors[g]
+        z = depths[g]
+        weight = alpha * t
+        wp.atomic_add(grad_colors_out, g, weight * g_color)
+        wp.atomic_add(grad_depths_out, g, weight * g_depth)
+        grad_alpha_i = t * (wp.dot(c - behind_color, g_color) + (z - behind_depth) * g_depth)
+        grad_alpha_i += final_transmittance / (1.0 - alpha) * g_final
+        prev_alpha = alpha
+        prev_color = c
+        prev_depth = z
+        if raw_alpha < MAX_ALPHA:
+            wp.atomic_add(grad_opacities_out, g, gauss * grad_alpha_i)
+            grad_power = opacity * gauss * grad_alpha_i
+            grad_mean = grad_power * wp.vec2(-(conic[0] * dx + conic[1] * dy), -(conic[2] * dy + conic[1] * dx))
+            wp.atomic_add(grad_means2d_out, g, grad_mean)
+            wp.atomic_add(absgrad_means2d_out, g, wp.vec2(wp.abs(grad_mean[0]), wp.abs(grad_mean[1])))
+            wp.atomic_add(grad_conics_out, g, grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy))

@@ -1,0 +1,208 @@
+"""World to screen: EWA projection of 3D Gaussians and their spherical-harmonics colour.
+
+Pure Warp. Conventions: world-to-camera matrices, camera x right, y down, z forward (COLMAP);
+quaternions (w, x, y, z); pixel coordinates continuous with pixel (i, j) centred at (i + 0.5, j + 0.5).
+
+Both kernels are per-Gaussian maps, so their backward passes are Warp's generated adjoints
+(launch with ``adjoint=True``); tests check them against a float64 reference.
+"""
+
+import warp as wp
+
+# Alpha below this never composites (3DGS).
+ALPHA_THRESHOLD = wp.constant(1.0 / 255.0)
+# Added to the diagonal of every 2D covariance, in px^2 (3DGS low-pass filter).
+COVARIANCE_DILATION = wp.constant(0.3)
+# Camera-space x/z and y/z are clamped to this multiple of the field-of-view limits in the Jacobian.
+FRUSTUM_CLAMP = wp.constant(1.3)
+# A footprint larger than this (px) is clamped before conversion to integers.
+MAX_RADIUS = wp.constant(1.0e8)
+
+SH_C0 = wp.constant(0.28209479177387814)
+SH_C1 = wp.constant(0.4886025119029199)
+
+mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
+
+
+@wp.struct
+class Camera:
+    """A pinhole camera: world-to-camera rotation and translation, intrinsics in pixels, image size."""
+
+    rotation: wp.mat33
+    translation: wp.vec3
+    center: wp.vec3  # camera centre in world coordinates, -R^T t
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    near: float
+
+
+def make_camera(viewmat, intrinsics, width: int, height: int, near: float = 0.01) -> Camera:
+    """Build a :class:`Camera` from a 4x4 world-to-camera matrix and a 3x3 intrinsic matrix.
+
+    Both are anything numpy can read as float64 arrays (nested lists, numpy, CPU torch tensors).
+    """
+    import numpy as np
+
+    view = np.asarray(viewmat, dtype=np.float64)
+    K = np.asarray(intrinsics, dtype=np.float64)
+    cam = Camera()
+    rotation = view[:3, :3]
+    translation = view[:3, 3]
+    cam.rotation = wp.mat33(*rotation.reshape(-1).tolist())
+    cam.translation = wp.vec3(*translation.tolist())
+    cam.center = wp.vec3(*(-rotation.T @ translation).tolist())
+    cam.fx, cam.fy, cam.cx, cam.cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    cam.width, cam.height, cam.near = int(width), int(height), float(near)
+    return cam
+
+
+@wp.func
+def quat_to_rotation(q: wp.vec4):
+    """Rotation matrix of the quaternion (w, x, y, z), normalised here."""
+    n = q / wp.length(q)
+    w = n[0]
+    x = n[1]
+    y = n[2]
+    z = n[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )  # fmt: skip
+
+
+@wp.kernel
+def project_gaussians_kernel(
+    gauss_means: wp.array(dtype=wp.vec3),
+    gauss_quats: wp.array(dtype=wp.vec4),
+    gauss_scales: wp.array(dtype=wp.vec3),
+    gauss_opacities: wp.array(dtype=float),
+    camera: Camera,
+    antialiased: int,
+    means2d_out: wp.array(dtype=wp.vec2),
+    conics_out: wp.array(dtype=wp.vec3),
+    depths_out: wp.array(dtype=float),
+    opacities_out: wp.array(dtype=float),
+    radii_out: wp.array(dtype=wp.vec2i),
+):
+    """EWA-project one Gaussian: pixel mean, conic, depth, opacity and per-axis pixel radius (0 = culled)."""
+    i = wp.tid()
+    p = camera.rotation * gauss_means[i] + camera.translation
+    if p[2] < camera.near:
+        radii_out[i] = wp.vec2i(0, 0)
+        return
+
+    rotation = quat_to_rotation(gauss_quats[i])
+    s = gauss_scales[i]
+    m = rotation * wp.diag(s)
+    cov_world = m * wp.transpose(m)
+    cov_cam = camera.rotation * cov_world * wp.transpose(camera.rotation)
+
+    # Perspective Jacobian at a point clamped to 1.3x the field of view (keeps off-screen
+    # Gaussians from exploding); the mean itself is projected unclamped.
+    inv_z = 1.0 / p[2]
+    lim_left = FRUSTUM_CLAMP * camera.cx / camera.fx
+    lim_right = FRUSTUM_CLAMP * (float(camera.width) - camera.cx) / camera.fx
+    lim_top = FRUSTUM_CLAMP * camera.cy / camera.fy
+    lim_bottom = FRUSTUM_CLAMP * (float(camera.height) - camera.cy) / camera.fy
+    tx = wp.clamp(p[0] * inv_z, -lim_left, lim_right) * p[2]
+    ty = wp.clamp(p[1] * inv_z, -lim_top, lim_bottom) * p[2]
+    jac = mat23(
+        camera.fx * inv_z, 0.0, -camera.fx * tx * inv_z * inv_z,
+        0.0, camera.fy * inv_z, -camera.fy * ty * inv_z * inv_z,
+    )  # fmt: skip
+    cov2d = jac * cov_cam * wp.transpose(jac)
+
+    a0 = cov2d[0, 0]
+    b = 0.5 * (cov2d[0, 1] + cov2d[1, 0])
+    c0 = cov2d[1, 1]
+    det_raw = a0 * c0 - b * b
+    a = a0 + COVARIANCE_DILATION
+    c = c0 + COVARIANCE_DILATION
+    det = a * c - b * b
+    if det <= 0.0:
+        radii_out[i] = wp.vec2i(0, 0)
+        return
+
+    opacity = gauss_opacities[i]
+    if antialiased != 0:
+        # Mip-Splatting: keep the integrated opacity of the Gaussian after dilation.
+        ratio = det_raw / det
+        if ratio > 0.0:
+            opacity = opacity * wp.sqrt(ratio)
+        else:
+            opacity = 0.0
+    if opacity * 255.0 <= 1.0:
+        # alpha = opacity * exp(power) <= opacity can never reach 1/255
+        radii_out[i] = wp.vec2i(0, 0)
+        return
+
+    # Exact bounding box of {d : opacity * exp(-d^T conic d / 2) >= 1/255}: the 3DGS 3-sigma
+    # footprint made exact (at most 3.33 sigma, less for transparent Gaussians), so tiling never
+    # drops a pixel that a dense renderer composites.
+    extent = wp.sqrt(2.0 * wp.log(opacity * 255.0))
+    radius_x = wp.min(extent * wp.sqrt(a), MAX_RADIUS)
+    radius_y = wp.min(extent * wp.sqrt(c), MAX_RADIUS)
+    mean2d = wp.vec2(camera.fx * p[0] * inv_z + camera.cx, camera.fy * p[1] * inv_z + camera.cy)
+    if (
+        mean2d[0] + radius_x <= 0.0
+        or mean2d[0] - radius_x >= float(camera.width)
+        or mean2d[1] + radius_y <= 0.0
+        or mean2d[1] - radius_y >= float(camera.height)
+    ):
+        radii_out[i] = wp.vec2i(0, 0)
+        return
+
+    means2d_out[i] = mean2d
+    conics_out[i] = wp.vec3(c / det, -b / det, a / det)
+    depths_out[i] = p[2]
+    opacities_out[i] = opacity
+    radii_out[i] = wp.vec2i(int(wp.ceil(radius_x)), int(wp.ceil(radius_y)))
+
+
+@wp.kernel
+def sh_to_color_kernel(
+    gauss_means: wp.array(dtype=wp.vec3),
+    gauss_sh: wp.array2d(dtype=wp.vec3),
+    sh_degree: int,
+    camera_center: wp.vec3,
+    colors_out: wp.array(dtype=wp.vec3),
+):
+    """View-dependent colour max(SH . basis(dir) + 0.5, 0), dir from the camera centre to the mean (3DGS)."""
+    i = wp.tid()
+    color = SH_C0 * gauss_sh[i, 0]
+    if sh_degree > 0:
+        d = wp.normalize(gauss_means[i] - camera_center)
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        color = color - SH_C1 * y * gauss_sh[i, 1] + SH_C1 * z * gauss_sh[i, 2] - SH_C1 * x * gauss_sh[i, 3]
+        if sh_degree > 1:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            color = (
+                color
+                + 1.0925484305920792 * x * y * gauss_sh[i, 4]
+                - 1.0925484305920792 * y * z * gauss_sh[i, 5]
+                + 0.31539156525252005 * (2.0 * zz - xx - yy) * gauss_sh[i, 6]
+                - 1.0925484305920792 * x * z * gauss_sh[i, 7]
+                + 0.5462742152960396 * (xx - yy) * gauss_sh[i, 8]
+            )
+            if sh_degree > 2:
+                color = (
+                    color
+                    - 0.5900435899266435 * y * (3.0 * xx - yy) * gauss_sh[i, 9]
+                    + 2.890611442640554 * x * y * z * gauss_sh[i, 10]
+                    - 0.4570457994644658 * y * (4.0 * zz - xx - yy) * gauss_sh[i, 11]
+                    + 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * gauss_sh[i, 12]
+                    - 0.4570457994644658 * x * (4.0 * zz - xx - yy) * gauss_sh[i, 13]
+                    + 1.445305721320277 * z * (xx - yy) * gauss_sh[i, 14]
+                    - 0.5900435899266435 * x * (xx - 3.0 * yy) * gauss_sh[i, 15]
+                )
+    color = color + wp.vec3(0.5, 0.5, 0.5)
+    colors_out[i] = wp.vec3(wp.max(color[0], 0.0), wp.max(color[1], 0.0), wp.max(color[2], 0.0))

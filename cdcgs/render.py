@@ -1,0 +1,463 @@
+"""The torch face of the rasterizer: validation, zero-copy sharing with Warp, autograd.
+
+``rasterize`` is the one public entry point. Tensors stay on their device; Warp reads and writes
+torch's memory directly (``wp.from_torch``) on torch's current CUDA stream.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
+from .kernels.blend import blend_backward_kernel, blend_forward_kernel
+from .kernels.projection import Camera, make_camera, project_gaussians_kernel, sh_to_color_kernel
+
+__all__ = ["RasterizeInfo", "rasterize"]
+
+_TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
+
+
+@dataclass
+class RasterizeInfo:
+    """What a render knows besides the image. Per-Gaussian tensors are [N, ...] in input order.
+
+    Attributes:
+        width, height: image size in pixels; tile_size: tile side in pixels (16).
+        means2d: [N, 2] pixel coordinates of the projected means (0 for culled Gaussians). A node
+            of the autograd graph: call ``means2d.retain_grad()`` before ``backward`` to read the
+            screen-space positional gradient, or use :meth:`positional_gradient`.
+        conics: [N, 3] inverse 2D covariance (a, b, c) of the dilated footprint, px^-2.
+        depths: [N] camera-space z. opacities: [N] opacities as composited (after the
+            anti-aliasing compensation when ``antialiased``). colors: [N, 3] composited colours.
+        radii: [N, 2] int32 per-axis pixel radius of the footprint (0 = culled).
+        visible: [N] bool, radii > 0 (in front of the near plane and overlapping the image).
+        tile_counts: [N] int32 tiles touched; num_intersections: their sum.
+        tile_ranges: [tiles_y, tiles_x, 2] int32 [start, end) into ``sorted_gauss_ids``.
+        sorted_gauss_ids: [num_intersections] int32 Gaussian ids ordered by (tile, depth).
+        last_contributor: [H, W] int32 index into ``sorted_gauss_ids`` of each pixel's last
+            composited Gaussian (start - 1 when none).
+        transmittance: [H, W] final transmittance (1 - alpha).
+        depth: [H, W] expected depth (sum of weight x depth / alpha, 0 where alpha is 0) when
+            ``render_depth`` was asked for, else None. Differentiable.
+        means2d_absgrad: [N, 2] sum over pixels of |d loss / d means2d| per pixel (AbsGS), filled
+            by the backward pass.
+    """
+
+    width: int
+    height: int
+    tile_size: int
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    depths: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+    radii: torch.Tensor
+    visible: torch.Tensor
+    tile_counts: torch.Tensor
+    num_intersections: int
+    tile_ranges: torch.Tensor
+    sorted_gauss_ids: torch.Tensor
+    last_contributor: torch.Tensor
+    transmittance: torch.Tensor
+    depth: torch.Tensor | None
+    means2d_absgrad: torch.Tensor
+
+    def positional_gradient(self, absolute: bool = False) -> torch.Tensor:
+        """[N] norm of the screen-space positional gradient of this view in NDC units (3DGS).
+
+        The pixel-space gradient of ``means2d`` scaled by W/2 in x and H/2 in y, as 3DGS
+        accumulates it for densification; ``absolute`` gives the AbsGS variant (sum of per-pixel
+        absolute values). Valid after ``backward``; zero where no gradient reached.
+        """
+        if absolute:
+            grad = self.means2d_absgrad
+        else:
+            grad = self.means2d.grad
+            if grad is None:
+                raise RuntimeError("call info.means2d.retain_grad() before backward() to read the positional gradient")
+        scale = grad.new_tensor([0.5 * self.width, 0.5 * self.height])
+        return (grad * scale).norm(dim=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# Warp plumbing
+
+
+def _wp(tensor: torch.Tensor, dtype) -> wp.array:
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+
+
+_streams: dict = {}
+
+
+@contextlib.contextmanager
+def _warp_scope(device: torch.device):
+    """Run Warp on the tensors' device and, on CUDA, on torch's current stream."""
+    if device.type == "cuda":
+        torch_stream = torch.cuda.current_stream(device)
+        key = (device.index, torch_stream.cuda_stream)
+        stream = _streams.get(key)
+        if stream is None:
+            stream = _streams[key] = wp.stream_from_torch(torch_stream)
+        with wp.ScopedDevice(stream.device), wp.ScopedStream(stream, sync_enter=False):
+            yield stream.device
+    else:
+        with wp.ScopedDevice("cpu"):
+            yield wp.get_device("cpu")
+
+
+def _torch_allocators(device: torch.device):
+    def allocate(shape, dtype, _device):
+        return _wp(torch.empty(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
+
+    def zeros(shape, dtype, _device):
+        return _wp(torch.zeros(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
+
+    return allocate, zeros
+
+
+# --------------------------------------------------------------------------------------------
+# Autograd functions
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, camera: Camera, antialiased: bool):
+        n = means.shape[0]
+        means2d = means.new_zeros(n, 2)
+        conics = means.new_zeros(n, 3)
+        depths = means.new_zeros(n)
+        out_opacities = means.new_zeros(n)
+        radii = torch.zeros(n, 2, dtype=torch.int32, device=means.device)
+        with _warp_scope(means.device):
+            wp.launch(
+                project_gaussians_kernel,
+                n,
+                inputs=_project_inputs(means, quats, scales, opacities, camera, antialiased),
+                outputs=_project_outputs(means2d, conics, depths, out_opacities, radii),
+            )
+        ctx.save_for_backward(means, quats, scales, opacities, means2d, conics, depths, out_opacities, radii)
+        ctx.camera = camera
+        ctx.antialiased = antialiased
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, out_opacities, radii
+
+    @staticmethod
+    def backward(ctx, grad_means2d, grad_conics, grad_depths, grad_opacities_out, _grad_radii):
+        means, quats, scales, opacities, means2d, conics, depths, out_opacities, radii = ctx.saved_tensors
+        grads_in = [torch.zeros_like(t) for t in (means, quats, scales, opacities)]
+        grads_out = [
+            _grad_or_zeros(g, t) for g, t in zip((grad_means2d, grad_conics, grad_depths, grad_opacities_out), (means2d, conics, depths, out_opacities))
+        ]
+        with _warp_scope(means.device):
+            wp.launch(
+                project_gaussians_kernel,
+                means.shape[0],
+                inputs=_project_inputs(means, quats, scales, opacities, ctx.camera, ctx.antialiased),
+                outputs=_project_outputs(means2d, conics, depths, out_opacities, radii),
+                adj_inputs=[*_project_inputs(*grads_in, Camera(), ctx.antialiased)[:4], Camera(), 0],
+                adj_outputs=[*_project_outputs(*grads_out, radii)[:4], None],
+                adjoint=True,
+            )
+        return (*grads_in, None, None)
+
+
+def _project_inputs(means, quats, scales, opacities, camera, antialiased):
+    return [_wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities, wp.float32), camera, int(antialiased)]
+
+
+def _project_outputs(means2d, conics, depths, opacities, radii):
+    return [_wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(depths, wp.float32), _wp(opacities, wp.float32), _wp(radii, wp.vec2i)]
+
+
+def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    return torch.zeros_like(like) if grad is None else grad.contiguous()
+
+
+class _ShColor(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, sh, sh_degree: int, camera_center):
+        colors = means.new_zeros(means.shape[0], 3)
+        with _warp_scope(means.device):
+            wp.launch(
+                sh_to_color_kernel,
+                means.shape[0],
+                inputs=[_wp(means, wp.vec3), _wp(sh, wp.vec3), sh_degree, camera_center],
+                outputs=[_wp(colors, wp.vec3)],
+            )
+        ctx.save_for_backward(means, sh, colors)
+        ctx.sh_degree = sh_degree
+        ctx.camera_center = camera_center
+        return colors
+
+    @staticmethod
+    def backward(ctx, grad_colors):
+        means, sh, colors = ctx.saved_tensors
+        grad_means = torch.zeros_like(means)
+        grad_sh = torch.zeros_like(sh)
+        with _warp_scope(means.device):
+            wp.launch(
+                sh_to_color_kernel,
+                means.shape[0],
+                inputs=[_wp(means, wp.vec3), _wp(sh, wp.vec3), ctx.sh_degree, ctx.camera_center],
+                outputs=[_wp(colors, wp.vec3)],
+                adj_inputs=[_wp(grad_means, wp.vec3), _wp(grad_sh, wp.vec3), 0, wp.vec3()],
+                adj_outputs=[_wp(grad_colors.contiguous(), wp.vec3)],
+                adjoint=True,
+            )
+        return grad_means, grad_sh, None, None
+
+
+class _Blend(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, depths, background, bins: TileBins, width, height, absgrad_out):
+        device = means2d.device
+        image = means2d.new_empty(height, width, 3)
+        transmittance = means2d.new_empty(height, width)
+        depth_sum = means2d.new_empty(height, width)
+        last = torch.empty(height, width, dtype=torch.int32, device=device)
+        with _warp_scope(device):
+            wp.launch(
+                blend_forward_kernel,
+                bins.tiles_x * bins.tiles_y * TILE_SIZE * TILE_SIZE,
+                inputs=[
+                    bins.tile_ranges, bins.gauss_ids,
+                    *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
+                    _wp(background, wp.vec3), width, height, bins.tiles_x,
+                ],  # fmt: skip
+                outputs=[_wp(image, wp.vec3), _wp(transmittance, wp.float32), _wp(depth_sum, wp.float32), _wp(last, wp.int32)],
+                block_dim=TILE_SIZE * TILE_SIZE,
+            )
+        ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, transmittance, last)
+        ctx.bins = bins
+        ctx.absgrad_out = absgrad_out
+        ctx.mark_non_differentiable(last)
+        return image, transmittance, depth_sum, last
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_transmittance, grad_depth_sum, _grad_last):
+        means2d, conics, colors, opacities, depths, background, transmittance, last = ctx.saved_tensors
+        bins = ctx.bins
+        height, width = transmittance.shape
+        grad_image = _grad_or_zeros(grad_image, means2d.new_empty(height, width, 3))
+        # alpha = 1 - transmittance: a gradient on transmittance is minus one on alpha.
+        grad_alpha = -_grad_or_zeros(grad_transmittance, transmittance)
+        grad_depth_sum = _grad_or_zeros(grad_depth_sum, transmittance)
+        grads = [torch.zeros_like(t) for t in (means2d, conics, colors, opacities, depths)]
+        absgrad = ctx.absgrad_out
+        with _warp_scope(means2d.device):
+            wp.launch(
+                blend_backward_kernel,
+                bins.tiles_x * bins.tiles_y * TILE_SIZE * TILE_SIZE,
+                inputs=[
+                    bins.tile_ranges, bins.gauss_ids,
+                    *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
+                    _wp(background, wp.vec3), width, height, bins.tiles_x,
+                    _wp(transmittance, wp.float32), _wp(last, wp.int32),
+                    _wp(grad_image, wp.vec3), _wp(grad_alpha, wp.float32), _wp(grad_depth_sum, wp.float32),
+                ],  # fmt: skip
+                outputs=[*_blend_gaussian_inputs(*grads), _wp(absgrad, wp.vec2)],
+                block_dim=TILE_SIZE * TILE_SIZE,
+            )
+        grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
+        return (*grads, grad_background, None, None, None, None)
+
+
+def _blend_gaussian_inputs(means2d, conics, colors, opacities, depths):
+    return [_wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(colors, wp.vec3), _wp(opacities, wp.float32), _wp(depths, wp.float32)]
+
+
+# --------------------------------------------------------------------------------------------
+# Validation
+
+
+def _check_tensor(name: str, value, shape: tuple, device: torch.device | None) -> torch.Tensor:
+    """``shape`` uses None for the free Gaussian-count dimension and -1 for 'any size'."""
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.dtype != torch.float32:
+        raise ValueError(f"{name} must be float32, got {value.dtype}")
+    if value.dim() != len(shape) or any(s not in (None, -1) and s != v for s, v in zip(shape, value.shape)):
+        expected = "[" + ", ".join("N" if s is None else ("*" if s == -1 else str(s)) for s in shape) + "]"
+        raise ValueError(f"{name} must have shape {expected}, got {list(value.shape)}")
+    if device is not None and value.device != device:
+        raise ValueError(f"{name} is on {value.device} but means is on {device}; all Gaussian tensors must share a device")
+    return value.contiguous()
+
+
+def _check_camera(viewmat, K, width, height, near_plane):
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise ValueError(f"{name} must be a positive int (pixels), got {value!r}")
+    if not (isinstance(near_plane, (int, float)) and math.isfinite(near_plane) and near_plane > 0):
+        raise ValueError(f"near_plane must be a positive finite number, got {near_plane!r}")
+    mats = {}
+    for name, value, size in (("viewmat", viewmat, 4), ("K", K, 3)):
+        try:
+            mat = torch.as_tensor(value).detach().to("cpu", torch.float64)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise ValueError(f"{name} must be a {size}x{size} matrix: {err}") from None
+        if mat.shape != (size, size):
+            raise ValueError(f"{name} must have shape [{size}, {size}], got {list(mat.shape)}")
+        if not torch.isfinite(mat).all():
+            raise ValueError(f"{name} has non-finite entries")
+        mats[name] = mat
+    view, intr = mats["viewmat"], mats["K"]
+    if not torch.allclose(view[3], view.new_tensor([0.0, 0.0, 0.0, 1.0])):
+        raise ValueError(f"viewmat's last row must be [0, 0, 0, 1], got {view[3].tolist()}")
+    rotation = view[:3, :3]
+    if not torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-4):
+        raise ValueError("viewmat's upper-left 3x3 block must be a rotation (world-to-camera, no scale)")
+    if intr[0, 0] <= 0 or intr[1, 1] <= 0:
+        raise ValueError(f"K must have positive focal lengths, got fx={intr[0, 0].item()}, fy={intr[1, 1].item()}")
+    return make_camera(view.numpy(), intr.numpy(), width, height, near_plane)
+
+
+# --------------------------------------------------------------------------------------------
+# Entry point
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    sh: torch.Tensor | None = None,
+    *,
+    viewmat,
+    K,
+    width: int,
+    height: int,
+    sh_degree: int | None = None,
+    colors: torch.Tensor | None = None,
+    background=None,
+    antialiased: bool = False,
+    near_plane: float = 0.01,
+    render_depth: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
+    """Render 3D Gaussians from one pinhole camera, differentiably.
+
+    Args:
+        means: [N, 3] world positions. quats: [N, 4] rotations (w, x, y, z), normalised inside.
+        scales: [N, 3] standard deviations along the Gaussian's axes (not log).
+        opacities: [N] opacities in [0, 1] (after the sigmoid).
+        sh: [N, K, 3] real spherical-harmonics coefficients, 3DGS convention, K >= (sh_degree+1)^2.
+        viewmat: [4, 4] world-to-camera matrix (camera x right, y down, z forward). K: [3, 3]
+            intrinsics in pixels; (cx, cy) continuous, pixel (i, j) centred at (i+0.5, j+0.5).
+            Either may be a tensor on any device, a numpy array or nested lists (read on the host).
+        width, height: image size in pixels.
+        sh_degree: 0..3, degree of ``sh`` to evaluate; default sqrt(K) - 1.
+        colors: [N, 3] colours to composite instead of ``sh`` (exactly one of the two).
+        background: [3] colour behind the Gaussians (tensor or sequence); default black.
+            Differentiable when it is a tensor that requires grad.
+        antialiased: multiply opacity by sqrt(det cov / det dilated cov) (Mip-Splatting).
+        near_plane: Gaussians with camera z below this are culled.
+        render_depth: also return the expected depth map in ``info.depth``.
+
+    Returns:
+        image [H, W, 3], alpha [H, W] and a :class:`RasterizeInfo`. All float32 on ``means``' device.
+
+    Raises:
+        ValueError: an argument of the wrong type, dtype, shape or device, non-finite values, an
+            empty scene or an empty image; the message names the argument.
+    """
+    means = _check_tensor("means", means, (None, 3), None)
+    device = means.device
+    n = means.shape[0]
+    if n == 0:
+        raise ValueError("means is empty: the scene has no Gaussians to render")
+    quats = _check_tensor("quats", quats, (n, 4), device)
+    scales = _check_tensor("scales", scales, (n, 3), device)
+    opacities = _check_tensor("opacities", opacities, (n,), device)
+    if (sh is None) == (colors is None):
+        raise ValueError("pass exactly one of sh ([N, K, 3] coefficients) and colors ([N, 3])")
+    if sh is not None:
+        sh = _check_tensor("sh", sh, (n, -1, 3), device)
+        k = sh.shape[1]
+        if sh_degree is None:
+            sh_degree = math.isqrt(k) - 1
+            if (sh_degree + 1) ** 2 != k:
+                raise ValueError(f"sh has {k} coefficients per channel, not a square; pass sh_degree")
+        if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
+            raise ValueError(f"sh_degree must be an int in 0..3, got {sh_degree!r}")
+        if k < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh has {k} coefficients per channel, degree {sh_degree} needs {(sh_degree + 1) ** 2}")
+    else:
+        colors = _check_tensor("colors", colors, (n, 3), device)
+    if background is None:
+        background = means.new_zeros(3)
+    elif isinstance(background, torch.Tensor):
+        background = _check_tensor("background", background, (3,), device)
+    else:
+        try:
+            background = means.new_tensor([float(v) for v in background])
+        except (TypeError, ValueError):
+            raise ValueError(f"background must be 3 numbers or a [3] tensor, got {background!r}") from None
+        if background.shape != (3,):
+            raise ValueError(f"background must have 3 entries, got {background.numel()}")
+    camera = _check_camera(viewmat, K, width, height, near_plane)
+
+    checked = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "background": background}
+    checked["sh" if sh is not None else "colors"] = sh if sh is not None else colors
+    finite = torch.stack([torch.isfinite(t).all() for t in checked.values()])
+
+    means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased)
+    if sh is not None:
+        center = camera.center
+        colors = _ShColor.apply(means, sh, sh_degree, wp.vec3(center[0], center[1], center[2]))
+
+    def read_count(tile_offsets: wp.array) -> int:
+        # The single host synchronisation of a render: the intersection count sizes the sort
+        # buffers. The finiteness flags travel with it so that validation costs no extra sync.
+        values = torch.cat([finite.to(torch.int64), wp.to_torch(tile_offsets)[-1:].to(torch.int64)]).tolist()
+        for (name, _), ok in zip(checked.items(), values[:-1]):
+            if not ok:
+                raise ValueError(f"{name} has non-finite values (NaN or inf)")
+        return values[-1]
+
+    allocate, zeros = _torch_allocators(device)
+    with _warp_scope(device):
+        bins = bin_gaussians(
+            _wp(means2d.detach(), wp.vec2),
+            _wp(radii, wp.vec2i),
+            _wp(depths.detach(), wp.float32),
+            width,
+            height,
+            allocate=allocate,
+            zeros=zeros,
+            read_count=read_count,
+        )
+    absgrad = means.new_zeros(n, 2)
+    image, transmittance, depth_sum, last = _Blend.apply(
+        means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad
+    )
+    alpha = 1.0 - transmittance
+    depth = None
+    if render_depth:
+        depth = torch.where(alpha > 0, depth_sum / alpha.clamp_min(1e-10), torch.zeros_like(depth_sum))
+    info = RasterizeInfo(
+        width=width,
+        height=height,
+        tile_size=TILE_SIZE,
+        means2d=means2d,
+        conics=conics,
+        depths=depths,
+        opacities=composited_opacities,
+        colors=colors,
+        radii=radii,
+        visible=(radii > 0).all(dim=-1),
+        tile_counts=wp.to_torch(bins.tile_counts),
+        num_intersections=bins.num_intersections,
+        tile_ranges=wp.to_torch(bins.tile_ranges).view(bins.tiles_y, bins.tiles_x, 2),
+        sorted_gauss_ids=wp.to_torch(bins.gauss_ids),
+        last_contributor=last,
+        transmittance=transmittance,
+        depth=depth,
+        means2d_absgrad=absgrad,
+    )
+    return image, alpha, info

@@ -1,0 +1,70 @@
+"""Tile binning against brute force: every composited (pixel, Gaussian) pair is in the pixel's
+tile list, and each tile's list is in depth order."""
+
+import pytest
+import reference
+import torch
+from conftest import make_scene
+
+import cdcgs
+
+
+@pytest.mark.parametrize("seed,n,width,height", [(11, 200, 50, 33), (12, 500, 83, 50), (13, 60, 16, 16)])
+def test_tile_lists_hold_every_composited_pair_in_depth_order(device, seed, n, width, height):
+    scene = make_scene(n, width, height, sh_degree=0, seed=seed)
+    tensors = [t.to(device) for t in scene.tensors()]
+    _, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=width, height=height)
+    d = [t.double() for t in scene.tensors()]
+    *_, weights = reference.render(*d, viewmat=scene.viewmat.double(), K=scene.K.double(), width=width, height=height)
+    ranges = info.tile_ranges.cpu()
+    ids = info.sorted_gauss_ids.cpu().long()
+    depths = info.depths.detach().cpu()
+    tiles_y, tiles_x = (height + 15) // 16, (width + 15) // 16
+    assert ranges.shape == (tiles_y, tiles_x, 2)
+    assert info.num_intersections == int(info.tile_counts.sum()) == ids.numel()
+    # Ranges partition the sorted list in tile order.
+    flat = ranges.reshape(-1, 2)
+    nonempty = flat[flat[:, 1] > flat[:, 0]]
+    assert nonempty[0, 0] == 0 and nonempty[-1, 1] == ids.numel()
+    assert (nonempty[1:, 0] == nonempty[:-1, 1]).all()
+    # Brute-force tile membership of each Gaussian from its integer radii.
+    checked_pairs = 0
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            start, end = ranges[ty, tx].tolist()
+            tile_ids = ids[start:end]
+            assert len(set(tile_ids.tolist())) == len(tile_ids), "a Gaussian listed twice in one tile"
+            dz = depths[tile_ids]
+            assert (dz[1:] >= dz[:-1]).all(), f"tile ({tx}, {ty}) not sorted by depth"
+            equal = dz[1:] == dz[:-1]
+            assert (tile_ids[1:][equal] > tile_ids[:-1][equal]).all(), "equal depths not in id order"
+            position = {g: k for k, g in enumerate(tile_ids.tolist())}
+            for y in range(ty * 16, min(ty * 16 + 16, height)):
+                for x in range(tx * 16, min(tx * 16 + 16, width)):
+                    composited = torch.nonzero(weights[y * width + x] > 0).flatten().tolist()
+                    missing = [g for g in composited if g not in position]
+                    assert not missing, f"pixel ({x}, {y}) composites {missing} missing from its tile list"
+                    order = sorted(composited, key=lambda g: (depths[g].item(), g))
+                    assert [position[g] for g in order] == sorted(position[g] for g in composited)
+                    checked_pairs += len(composited)
+    assert checked_pairs > 0
+
+
+def test_tile_counts_match_rectangles(device):
+    """Each Gaussian's tile count is the number of tiles its pixel-radius rectangle overlaps."""
+    scene = make_scene(300, 70, 45, sh_degree=0, seed=14)
+    _, _, info = cdcgs.rasterize(*[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=70, height=45)
+    means2d = info.means2d.detach().cpu().double()
+    radii = info.radii.cpu().double()
+    counts = info.tile_counts.cpu()
+    for i in range(300):
+        if not info.visible[i]:
+            assert counts[i] == 0
+            continue
+        x0 = int(torch.clamp(torch.floor((means2d[i, 0] - radii[i, 0]) / 16), 0, 5))
+        x1 = int(torch.clamp(torch.floor((means2d[i, 0] + radii[i, 0]) / 16) + 1, 0, 5))
+        y0 = int(torch.clamp(torch.floor((means2d[i, 1] - radii[i, 1]) / 16), 0, 3))
+        y1 = int(torch.clamp(torch.floor((means2d[i, 1] + radii[i, 1]) / 16) + 1, 0, 3))
+        assert counts[i] == (x1 - x0) * (y1 - y0), i
+        listed = (info.sorted_gauss_ids.cpu() == i).sum()
+        assert listed == counts[i]
