@@ -6,21 +6,20 @@ torch's memory directly (``wp.from_torch``) on torch's current CUDA stream.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from dataclasses import dataclass
 
 import torch
 import warp as wp
 
+from .interop import torch_allocators as _torch_allocators
+from .interop import warp_scope as _warp_scope
+from .interop import wp_array as _wp
 from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
 from .kernels.blend import blend_backward_kernel, blend_forward_kernel
 from .kernels.projection import Camera, make_camera, project_gaussians_kernel, sh_to_color_kernel
 
 __all__ = ["RasterizeInfo", "rasterize"]
-
-_TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
-
 
 @dataclass
 class RasterizeInfo:
@@ -86,39 +85,6 @@ class RasterizeInfo:
 
 # --------------------------------------------------------------------------------------------
 # Warp plumbing
-
-
-def _wp(tensor: torch.Tensor, dtype) -> wp.array:
-    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
-
-
-_streams: dict = {}
-
-
-@contextlib.contextmanager
-def _warp_scope(device: torch.device):
-    """Run Warp on the tensors' device and, on CUDA, on torch's current stream."""
-    if device.type == "cuda":
-        torch_stream = torch.cuda.current_stream(device)
-        key = (device.index, torch_stream.cuda_stream)
-        stream = _streams.get(key)
-        if stream is None:
-            stream = _streams[key] = wp.stream_from_torch(torch_stream)
-        with wp.ScopedDevice(stream.device), wp.ScopedStream(stream, sync_enter=False):
-            yield stream.device
-    else:
-        with wp.ScopedDevice("cpu"):
-            yield wp.get_device("cpu")
-
-
-def _torch_allocators(device: torch.device):
-    def allocate(shape, dtype, _device):
-        return _wp(torch.empty(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
-
-    def zeros(shape, dtype, _device):
-        return _wp(torch.zeros(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
-
-    return allocate, zeros
 
 
 # --------------------------------------------------------------------------------------------

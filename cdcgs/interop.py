@@ -1,0 +1,49 @@
+"""Sharing torch tensors with Warp: zero-copy arrays, the right device and stream."""
+
+import contextlib
+
+import torch
+import warp as wp
+
+_TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
+_VECTOR_TYPES = {wp.vec3: (torch.float32, 3), wp.vec2: (torch.float32, 2), wp.vec2i: (torch.int32, 2)}
+
+
+def wp_array(tensor: torch.Tensor, dtype) -> wp.array:
+    """A Warp view of a contiguous tensor's memory (no copy)."""
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+
+
+_streams: dict = {}
+
+
+@contextlib.contextmanager
+def warp_scope(device: torch.device):
+    """Run Warp on the tensors' device and, on CUDA, on torch's current stream."""
+    if device.type == "cuda":
+        torch_stream = torch.cuda.current_stream(device)
+        key = (device.index, torch_stream.cuda_stream)
+        stream = _streams.get(key)
+        if stream is None:
+            stream = _streams[key] = wp.stream_from_torch(torch_stream)
+        with wp.ScopedDevice(stream.device), wp.ScopedStream(stream, sync_enter=False):
+            yield stream.device
+    else:
+        with wp.ScopedDevice("cpu"):
+            yield wp.get_device("cpu")
+
+
+def torch_allocators(device: torch.device):
+    """(allocate, zeros) callables for Warp helpers that return Warp views of new torch tensors,
+    so that torch's caching allocator holds (and reports) every buffer."""
+
+    def allocate(shape, dtype, _device):
+        if dtype in _VECTOR_TYPES:
+            base, length = _VECTOR_TYPES[dtype]
+            return wp_array(torch.empty(*shape, length, dtype=base, device=device), dtype)
+        return wp_array(torch.empty(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
+
+    def zeros(shape, dtype, _device):
+        return wp_array(torch.zeros(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
+
+    return allocate, zeros
