@@ -5,6 +5,9 @@ import contextlib
 import torch
 import warp as wp
 
+# Idempotent; needed before wp.device_from_torch, which reads Warp's device list.
+wp.init()
+
 _TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
 _VECTOR_TYPES = {wp.vec3: (torch.float32, 3), wp.vec2: (torch.float32, 2), wp.vec2i: (torch.int32, 2)}
 
