@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import pytest
 import torch
 import warp as wp
+from PIL import Image  # noqa: F401  before any pycolmap import (see cdcgs/io/colmap.py)
 
 wp.config.quiet = True
 sys.path.insert(0, os.path.dirname(__file__))

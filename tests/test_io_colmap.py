@@ -1,0 +1,218 @@
+"""COLMAP scenes: intrinsics, poses, splits, factors, undistortion and every bad input."""
+
+import logging
+import os
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from scenes import distorted_line_image, write_colmap_scene
+
+from cdcgs.errors import InputError
+from cdcgs.io import load_scene
+
+BONSAI = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai")
+
+
+def project(view, X):
+    """Pixel of world point X through the loaded view (our convention)."""
+    cam = view.viewmat[:3, :3].double() @ torch.as_tensor(X, dtype=torch.float64) + view.viewmat[:3, 3].double()
+    K = view.K.double()
+    return np.array([(K[0, 0] * cam[0] / cam[2] + K[0, 2]).item(), (K[1, 1] * cam[1] / cam[2] + K[1, 2]).item()])
+
+
+@pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_PINHOLE"])
+@pytest.mark.parametrize("text", [False, True])
+def test_pinhole_scene_poses_and_intrinsics(tmp_path, model, text):
+    import pycolmap
+
+    write_colmap_scene(tmp_path, model=model, text=text)
+    scene = load_scene(tmp_path, device="cpu", progress=False)
+    rec = pycolmap.Reconstruction(os.path.join(tmp_path, "sparse", "0"))
+    by_name = {img.name: img for img in rec.images.values()}
+    X = np.array([0.1, 0.2, -0.3])
+    for view in scene.views:
+        # Same pixel through pycolmap's projection (its convention) and ours.
+        np.testing.assert_allclose(project(view, X), by_name[view.name].project_point(X), atol=1e-4)
+        assert view.image.shape == (48, 64, 3) and view.image.dtype == torch.uint8
+    assert scene.source == "colmap" and scene.points.shape == (50, 3) and scene.colors.dtype == torch.uint8
+
+
+def test_split_every_eighth_by_name(tmp_path):
+    write_colmap_scene(tmp_path, n_images=17)
+    scene = load_scene(tmp_path, load_images_now=False)
+    names = [f"img_{i:03d}.png" for i in range(17)]
+    assert [v.name for v in scene.test] == [names[0], names[8], names[16]]
+    assert [v.name for v in scene.train] == [n for i, n in enumerate(names) if i % 8]
+    scene = load_scene(tmp_path, test_every=4, load_images_now=False)
+    assert len(scene.test) == 5 and len(scene.train) == 12
+    scene = load_scene(tmp_path, train_on_all=True, load_images_now=False)
+    assert len(scene.train) == 17 and len(scene.test) == 3
+    scene = load_scene(tmp_path, test_every=0, load_images_now=False)
+    assert len(scene.train) == 17 and scene.test == []
+
+
+def test_extent_is_3dgs_radius(tmp_path):
+    _, poses, _ = write_colmap_scene(tmp_path, n_images=16)
+    scene = load_scene(tmp_path, load_images_now=False)
+    centers = np.array([-p[:3, :3].T @ p[:3, 3] for i, p in enumerate(poses) if i % 8])
+    expected = 1.1 * np.linalg.norm(centers - centers.mean(0), axis=1).max()
+    assert scene.extent == pytest.approx(expected, rel=1e-5)
+
+
+def test_factor_folder_scales_intrinsics(tmp_path):
+    write_colmap_scene(tmp_path, factors=(2,))
+    full = load_scene(tmp_path, load_images_now=False)
+    half = load_scene(tmp_path, images="images_2", progress=False)
+    for a, b in zip(full.views, half.views):
+        torch.testing.assert_close(b.K[:2], a.K[:2] * 0.5)
+        assert (b.width, b.height) == (32, 24) and b.image.shape == (24, 32, 3)
+        X = np.array([0.2, -0.1, 0.1])
+        np.testing.assert_allclose(project(b, X), project(a, X) / 2, atol=1e-4)
+    assert load_scene(tmp_path, factor=2, load_images_now=False).views[0].image_path.endswith(os.path.join("images_2", "img_000.png"))
+
+
+def test_missing_factor_folder_resizes_and_says_so_once(tmp_path, caplog):
+    write_colmap_scene(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="cdcgs"):
+        scene = load_scene(tmp_path, images="images_4", progress=False)
+    messages = [r.getMessage() for r in caplog.records if "images_4 is missing" in r.getMessage()]
+    assert len(messages) == 1
+    view = scene.views[3]
+    assert (view.width, view.height) == (16, 12) and view.image.shape == (12, 16, 3)
+    torch.testing.assert_close(view.K[0, 0], torch.tensor(50.0 * 16 / 64))
+    # The content is the full image, resized.
+    full = np.asarray(Image.open(os.path.join(tmp_path, "images", view.name)).convert("RGB").resize((16, 12), Image.LANCZOS))
+    np.testing.assert_array_equal(view.image.numpy(), full)
+
+
+def line_residual(mask: np.ndarray) -> float:
+    """RMS distance (px) of the mask's pixels from their best-fit straight line."""
+    ys, xs = np.nonzero(mask)
+    pts = np.stack([xs, ys], 1).astype(np.float64)
+    pts -= pts.mean(0)
+    return float(np.sqrt(np.linalg.svd(pts, compute_uv=False)[-1] ** 2 / len(pts)))
+
+
+@pytest.mark.parametrize("model,params", [("OPENCV", [90.0, 92.0, 80.0, 60.0, -0.25, 0.08, 0.002, -0.001]), ("SIMPLE_RADIAL", [90.0, 80.0, 60.0, -0.15])])
+def test_distorted_cameras_are_undistorted_and_cached(tmp_path, model, params):
+    width, height = 160, 120
+    write_colmap_scene(tmp_path, n_images=3, width=width, height=height, model=model, params=params)
+    if model == "OPENCV":
+        fx, fy, cx, cy, *dist = params
+    else:
+        fx, cx, cy, k = params
+        fy, dist = fx, [k, 0.0, 0.0, 0.0]
+    picture = distorted_line_image(width, height, fx, fy, cx, cy, dist)
+    for i in range(3):
+        Image.fromarray(picture).save(os.path.join(tmp_path, "images", f"img_{i:03d}.png"))
+    assert line_residual(picture[..., 0] > 128) > 1.0, "the distorted line must be visibly curved"
+    scene = load_scene(tmp_path, progress=False)
+    view = scene.views[0]
+    assert "undistorted" in view.image_path
+    straight = view.image[..., 0].numpy() > 128
+    assert straight.sum() > 100
+    assert line_residual(straight) < 0.6
+    # Cached: a second load reuses the undistorted images without rewriting them.
+    mtime = os.path.getmtime(view.image_path)
+    again = load_scene(tmp_path, progress=False)
+    assert again.views[0].image_path == view.image_path and os.path.getmtime(view.image_path) == mtime
+    torch.testing.assert_close(again.views[0].image, view.image)
+
+
+# ----------------------------------------------------------------------------------- bad input
+
+
+def test_missing_scene_folder(tmp_path):
+    with pytest.raises(InputError, match="no such scene folder") as err:
+        load_scene(tmp_path / "nope")
+    assert err.value.path == str(tmp_path / "nope")
+
+
+def test_folder_without_model(tmp_path):
+    (tmp_path / "images").mkdir()
+    with pytest.raises(InputError, match="no COLMAP model"):
+        load_scene(tmp_path)
+
+
+def test_unreadable_model(tmp_path):
+    write_colmap_scene(tmp_path)
+    with open(tmp_path / "sparse" / "0" / "images.bin", "wb") as f:
+        f.write(b"\x07garbage")
+    with pytest.raises(InputError, match="cannot read the COLMAP model"):
+        load_scene(tmp_path)
+
+
+def test_missing_images_refused_or_skipped(tmp_path, caplog):
+    write_colmap_scene(tmp_path)
+    os.remove(tmp_path / "images" / "img_003.png")
+    os.remove(tmp_path / "images" / "img_007.png")
+    with pytest.raises(InputError, match=r"2 of 10 images .* missing.*img_003.png"):
+        load_scene(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="cdcgs"):
+        scene = load_scene(tmp_path, skip_missing=True, progress=False)
+    assert len(scene.views) == 8 and any("skipping" in r.getMessage() for r in caplog.records)
+
+
+def test_image_of_wrong_size(tmp_path):
+    write_colmap_scene(tmp_path, factors=(2,))
+    Image.fromarray(np.zeros((20, 20, 3), np.uint8)).save(tmp_path / "images_2" / "img_004.png")
+    with pytest.raises(InputError, match="image is 20x20 but its camera") as err:
+        load_scene(tmp_path, images="images_2")
+    assert err.value.path.endswith("img_004.png")
+
+
+def test_missing_image_folder(tmp_path):
+    write_colmap_scene(tmp_path, with_images=False)
+    with pytest.raises(InputError, match="no such image folder"):
+        load_scene(tmp_path, images="images_8")
+
+
+def test_unreadable_image(tmp_path):
+    write_colmap_scene(tmp_path)
+    (tmp_path / "images" / "img_002.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match="cannot read the image") as err:
+        load_scene(tmp_path)
+    assert err.value.path.endswith("img_002.png")
+
+
+def test_inconsistent_folder_and_factor(tmp_path):
+    write_colmap_scene(tmp_path)
+    with pytest.raises(ValueError, match="implies factor 4"):
+        load_scene(tmp_path, images="images_4", factor=2)
+
+
+@pytest.mark.skipif(not os.path.isdir(BONSAI), reason="../shared/data/bonsai is absent")
+def test_bonsai_loads_with_correct_poses(tmp_path):
+    import pycolmap
+
+    scene = load_scene(BONSAI, images="images_4", load_images_now=False)
+    assert len(scene.train) == 255 and len(scene.test) == 37
+    assert (scene.train[0].width, scene.train[0].height) == (200, 133)
+    rec = pycolmap.Reconstruction(os.path.join(BONSAI, "sparse", "0"))
+    by_name = {img.name: img for img in rec.images.values()}
+    errors = []
+    for view in scene.views[::40]:
+        image = by_name[view.name]
+        sx, sy = 800 / view.width, 533 / view.height
+        for point2d in image.points2D:
+            if point2d.has_point3D():
+                pixel = project(view, rec.points3D[point2d.point3D_id].xyz)
+                errors.append(np.hypot(pixel[0] * sx - point2d.xy[0], pixel[1] * sy - point2d.xy[1]))
+    assert len(errors) > 1000
+    assert np.mean(errors) < 1.0, f"mean reprojection error {np.mean(errors):.3f} px at full size"
+
+
+def test_read_only_scene_caches_in_user_folder(tmp_path, monkeypatch):
+    import cdcgs.io.colmap as colmap
+
+    scene_dir = tmp_path / "scene"
+    write_colmap_scene(scene_dir, n_images=2, width=80, height=60, model="SIMPLE_RADIAL", params=[60.0, 40.0, 30.0, -0.2])
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    # Root can write anywhere, so read-only is simulated: nothing under the scene is writable.
+    writable = colmap._writable
+    monkeypatch.setattr(colmap, "_writable", lambda folder: not str(folder).startswith(str(scene_dir)) and writable(folder))
+    scene = load_scene(scene_dir, progress=False)
+    assert scene.views[0].image_path.startswith(str(tmp_path / "cache" / "cdcgs"))
+    assert not (scene_dir / ".cdcgs_cache").exists()
