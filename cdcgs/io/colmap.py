@@ -20,7 +20,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError
-from .scene import View
+from .scene import View, report_missing
 
 log = logging.getLogger("cdcgs")
 
@@ -157,10 +157,7 @@ def read_colmap(root: str, images: str | None = None, factor: int | None = None,
     missing = [img.name for img in registered if not os.path.isfile(os.path.join(image_dir, img.name))]
     if missing:
         message = f"{len(missing)} of {len(registered)} images of the model are missing from the folder, first {missing[:5]}"
-        if not skip_missing:
-            raise InputError(image_dir, message + " (skip_missing skips them)")
-        log.warning("%s: %s; skipping them", image_dir, message)
-        notes.append(f"{image_dir}: {message}; skipped")
+        report_missing(image_dir, message, skip_missing, notes)
         registered = [img for img in registered if img.name not in set(missing)]
 
     # Image sizes are read from the files before any undistortion, so that a folder of the wrong

@@ -75,6 +75,14 @@ class Scene:
         return sorted(self.train + [v for v in self.test if v not in self.train], key=lambda v: v.name)
 
 
+def report_missing(path: str, message: str, skip_missing: bool, notes: list[str]) -> None:
+    """Refuse a scene with missing image files, or (``skip_missing``) warn and note it."""
+    if not skip_missing:
+        raise InputError(path, message + " (skip_missing skips them)")
+    log.warning("%s: %s; skipping them", path, message)
+    notes.append(f"{path}: {message}; skipped")
+
+
 def split_views(views: list[View], test_every: int = 8, train_on_all: bool = False) -> tuple[list[View], list[View]]:
     """Sort by image name; every ``test_every``-th (index % test_every == 0) is held out for testing.
 

@@ -18,7 +18,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError
-from .scene import View, random_points_in_frustums
+from .scene import View, random_points_in_frustums, report_missing
 
 log = logging.getLogger("cdcgs")
 
@@ -155,10 +155,7 @@ def read_transforms(json_path: str, factor: int = 1, skip_missing: bool = False)
         )  # fmt: skip
     if missing:
         message = f"{len(missing)} of {len(meta['frames'])} frames have no image file, first {missing[:5]}"
-        if not skip_missing:
-            raise InputError(json_path, message + " (skip_missing skips them)")
-        log.warning("%s: %s; skipping them", json_path, message)
-        notes.append(f"{json_path}: {message}; skipped")
+        report_missing(json_path, message, skip_missing, notes)
     if not views:
         raise InputError(json_path, "no frame has an image")
     if "ply_file_path" in meta:
