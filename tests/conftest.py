@@ -8,7 +8,7 @@ import torch
 import warp as wp
 from PIL import Image  # noqa: F401  before any pycolmap import (see cdcgs/io/colmap.py)
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 sys.path.insert(0, os.path.dirname(__file__))
 
 

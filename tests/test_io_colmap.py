@@ -12,7 +12,7 @@ from scenes import distorted_line_image, write_colmap_scene
 from cdcgs.errors import InputError
 from cdcgs.io import load_scene
 
-BONSAI = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai")
+BONSAI = os.environ.get("CDCGS_BONSAI", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai"))
 
 
 def project(view, X):

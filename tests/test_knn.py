@@ -8,7 +8,7 @@ import torch
 
 from cdcgs.neighbors import density, initial_scales, knn
 
-BONSAI = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai")
+BONSAI = os.environ.get("CDCGS_BONSAI", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai"))
 
 
 def brute_force(points: np.ndarray, k: int, queries: np.ndarray | None = None):

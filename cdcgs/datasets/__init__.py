@@ -1,0 +1,1 @@
+"""Scenes cdcgs can make or fetch: the procedural default scene, MipNeRF-360 downloads."""

@@ -1,0 +1,199 @@
+"""Densification strategies: how the set of Gaussians grows and shrinks during training.
+
+A strategy is a dataclass of hyperparameters. The trainer owns its state (``initialize_state``)
+and calls the same two hooks on every strategy, so it never asks which one it has:
+
+- ``before_backward(ctx, state)``: after the render, before ``loss.backward()``.
+- ``after_backward(ctx, state) -> dict``: after ``backward()``, before the optimizer step;
+  returns numbers worth logging (empty most iterations).
+
+``ctx`` is a :class:`StepContext`. Tensor surgery lives in :mod:`cdcgs.train.model` and is shared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import asdict, dataclass
+from typing import Any, Callable
+
+import torch
+
+from . import model as ops
+from .model import GaussianModel
+
+
+@dataclass
+class StepContext:
+    """What a strategy may look at during one training iteration."""
+
+    step: int  # 1-based iteration number of the step being taken
+    total_steps: int
+    model: GaussianModel
+    optimizer: torch.optim.Optimizer
+    info: Any  # the RasterizeInfo of this iteration's render
+    view_index: int  # index of the rendered view in the training views
+    extent: float
+    generator: torch.Generator  # on the model's device: every random draw of a strategy uses it
+    render: Callable | None = None  # render(view_index) -> (image, alpha, info), no grad
+
+
+@dataclass(kw_only=True)
+class ADC:
+    """3DGS adaptive density control (Kerbl et al. 2023), with the AbsGS variant as an option.
+
+    Accumulates the norm of each Gaussian's screen-space positional gradient (NDC units) over the
+    views that saw it. Every ``densify_every`` steps in (densify_from, densify_until]: Gaussians
+    whose mean gradient reaches ``grad_threshold`` are cloned when small (max scale <=
+    ``clone_max_scale`` x extent) and split into ``split_count`` when large; Gaussians with opacity
+    below ``prune_opacity`` are removed, and after the first opacity reset also those larger than
+    ``prune_screen_size`` px or ``prune_world_size`` x extent. Opacities are reset to
+    ``reset_value`` every ``reset_every`` steps.
+    """
+
+    grad_threshold: float = 2e-4
+    absgrad: bool = False  # AbsGS: sum of per-pixel absolute gradients (use a higher threshold)
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_every: int = 100
+    reset_every: int = 3000
+    reset_value: float = 0.01
+    prune_opacity: float = 0.005
+    clone_max_scale: float = 0.01
+    split_count: int = 2
+    split_scale_divisor: float = 1.6
+    prune_screen_size: float = 20.0
+    prune_world_size: float = 0.1
+    max_gaussians: int | None = None  # no densification beyond this many Gaussians
+
+    def __post_init__(self):
+        if self.densify_every <= 0 or self.reset_every <= 0:
+            raise ValueError("densify_every and reset_every must be positive")
+        if self.split_count < 2:
+            raise ValueError(f"split_count must be at least 2, got {self.split_count}")
+        if self.max_gaussians is not None and self.max_gaussians <= 0:
+            raise ValueError(f"max_gaussians must be positive, got {self.max_gaussians}")
+
+    def config(self) -> dict:
+        return {"name": type(self).__name__, **asdict(self)}
+
+    def initialize_state(self, model: GaussianModel) -> dict:
+        n, device = model.num, model.device
+        return {
+            "grad_sum": torch.zeros(n, device=device),
+            "count": torch.zeros(n, device=device),
+            "max_radius": torch.zeros(n, device=device),
+        }
+
+    # --- hooks -------------------------------------------------------------------------------
+
+    def before_backward(self, ctx: StepContext, state: dict) -> None:
+        if ctx.step <= self.densify_until:
+            ctx.info.means2d.retain_grad()
+
+    def after_backward(self, ctx: StepContext, state: dict) -> dict:
+        log = {}
+        if ctx.step <= self.densify_until:
+            self.accumulate(ctx, state)
+            if ctx.step > self.densify_from and ctx.step % self.densify_every == 0:
+                log.update(self.densify_and_prune(ctx, state))
+        if ctx.step % self.reset_every == 0 and ctx.step <= self.densify_until:
+            ops.reset_opacity(ctx.model, ctx.optimizer, self.reset_value)
+            log["opacity_reset"] = 1
+        return log
+
+    # --- pieces (CDC-GS builds on these) ------------------------------------------------------
+
+    def accumulate(self, ctx: StepContext, state: dict) -> None:
+        """Add this view's positional gradient norm and screen radius of every visible Gaussian."""
+        info = ctx.info
+        visible = info.visible
+        grad = info.positional_gradient(absolute=self.absgrad)
+        state["grad_sum"] += torch.where(visible, grad, torch.zeros_like(grad))
+        state["count"] += visible.float()
+        radius = info.radii.max(dim=-1).values.float()
+        state["max_radius"] = torch.maximum(state["max_radius"], torch.where(visible, radius, torch.zeros_like(radius)))
+
+    def mean_gradient(self, state: dict) -> torch.Tensor:
+        return torch.where(state["count"] > 0, state["grad_sum"] / state["count"].clamp_min(1), torch.zeros_like(state["grad_sum"]))
+
+    def grow_masks(self, ctx: StepContext, state: dict, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Split ``selected`` [N] into (clone, split) by size, under the ``max_gaussians`` cap."""
+        model = ctx.model
+        small = model.scales().max(dim=-1).values <= self.clone_max_scale * ctx.extent
+        clone, split = selected & small, selected & ~small
+        if self.max_gaussians is not None:
+            room = self.max_gaussians - model.num
+            growth = clone.sum() + (self.split_count - 1) * split.sum()
+            if growth > room:
+                # Keep the strongest candidates that fit.
+                if room <= 0:
+                    return torch.zeros_like(clone), torch.zeros_like(split)
+                score = self.mean_gradient(state)
+                cost = torch.where(split, float(self.split_count - 1), 1.0) * selected
+                order = torch.argsort(torch.where(selected, score, torch.full_like(score, -1.0)), descending=True)
+                fits = torch.zeros_like(selected)
+                fits[order] = torch.cumsum(cost[order], 0) <= room
+                clone, split = clone & fits, split & fits
+        return clone, split
+
+    def prune_mask(self, ctx: StepContext, max_radius: torch.Tensor) -> torch.Tensor:
+        """Opacity below ``prune_opacity``; after the first reset also too large on screen or in the world."""
+        model = ctx.model
+        prune = model.opacities() < self.prune_opacity
+        if ctx.step > self.reset_every:
+            prune |= max_radius > self.prune_screen_size
+            prune |= model.scales().max(dim=-1).values > self.prune_world_size * ctx.extent
+        return prune
+
+    def apply(self, ctx: StepContext, state: dict, clone: torch.Tensor, split: torch.Tensor, prune_extra: torch.Tensor | None = None) -> dict:
+        """Clone, split, then prune by the rule (plus ``prune_extra`` [N] over the Gaussians before
+        growth); reset the statistics. New Gaussians are judged like 3DGS judges them: by their
+        opacity and world size, with no screen size yet."""
+        model, optimizer = ctx.model, ctx.optimizer
+        n_old, n_clone, n_split = model.num, int(clone.sum()), int(split.sum())
+        ops.duplicate(model, optimizer, clone)  # [old, clones]
+        split_mask = torch.cat([split, split.new_zeros(n_clone)])
+        ops.split(model, optimizer, split_mask, count=self.split_count, scale_divisor=self.split_scale_divisor, generator=ctx.generator)
+        # Now [old without the split parents, clones, children].
+        kept = ~split
+        n_new = model.num - (n_old - n_split)
+        max_radius = torch.cat([state["max_radius"][kept], state["max_radius"].new_zeros(n_new)])
+        prune = self.prune_mask(ctx, max_radius)
+        if prune_extra is not None:
+            prune |= torch.cat([prune_extra[kept], prune_extra.new_zeros(n_new)])
+        n_prune = int(prune.sum())
+        ops.remove(model, optimizer, prune)
+        state.update(self.initialize_state(model))
+        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": model.num}
+
+    def densify_and_prune(self, ctx: StepContext, state: dict) -> dict:
+        selected = self.mean_gradient(state) >= self.grad_threshold
+        clone, split = self.grow_masks(ctx, state, selected)
+        return self.apply(ctx, state, clone, split)
+
+
+# Named presets: name -> (strategy class, its preset options).
+STRATEGIES: dict[str, tuple[type, dict]] = {
+    "adc": (ADC, {}),
+    "3dgs": (ADC, {}),
+    "absgs": (ADC, {"absgrad": True, "grad_threshold": 8e-4}),
+}
+
+
+def strategy_fields(name: str) -> dict:
+    """The hyperparameters (dataclass fields) of a named strategy, with their preset values."""
+    if name not in STRATEGIES:
+        raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(STRATEGIES))}")
+    cls, preset = STRATEGIES[name]
+    return {f.name: preset.get(f.name, f.default) for f in dataclasses.fields(cls)}
+
+
+def make_strategy(name: str, options: dict | None = None):
+    """The named preset with ``options`` overriding its hyperparameters (names checked)."""
+    fields = strategy_fields(name)
+    cls, preset = STRATEGIES[name]
+    options = dict(options or {})
+    unknown = sorted(set(options) - set(fields))
+    if unknown:
+        raise ValueError(f"strategy {name!r} has no option(s) {unknown}; it has {sorted(fields)}")
+    return cls(**{**preset, **options})

@@ -1,0 +1,166 @@
+"""Densification on hand-built states: which Gaussians are cloned, split, pruned, reset, and
+what happens to their Adam moments."""
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from cdcgs.train import model as ops
+from cdcgs.train.model import GaussianModel, LearningRates, make_optimizer, position_lr
+from cdcgs.train.strategy import ADC, StepContext, make_strategy
+
+
+def hand_model(n=6):
+    """Gaussians at x = 0..n-1 with chosen scales and opacities, and Adam moments set to known values."""
+    means = torch.zeros(n, 3)
+    means[:, 0] = torch.arange(n, dtype=torch.float32)
+    log_scales = torch.full((n, 3), math.log(0.005))
+    log_scales[3:, 0] = math.log(0.5)  # Gaussians 3.. are large
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1
+    opacity = torch.full((n,), 0.5)
+    opacity[5] = 0.001  # Gaussian 5 is nearly transparent
+    params = {
+        "means": means, "log_scales": log_scales, "quats": quats,
+        "opacity_logits": torch.log(opacity / (1 - opacity)),
+        "sh_dc": torch.rand(n, 1, 3), "sh_rest": torch.zeros(n, 15, 3),
+    }  # fmt: skip
+    model = GaussianModel(params)
+    optimizer = make_optimizer(model, LearningRates(), extent=1.0)
+    for group in optimizer.param_groups:
+        p = group["params"][0]
+        index = torch.arange(n, dtype=torch.float32).view(-1, *[1] * (p.dim() - 1))
+        value = (index + 1).expand_as(p).clone()
+        optimizer.state[p] = {"step": torch.tensor(1.0), "exp_avg": value, "exp_avg_sq": value.clone()}
+    return model, optimizer
+
+
+def moments(optimizer, name):
+    group = next(g for g in optimizer.param_groups if g["name"] == name)
+    return optimizer.state[group["params"][0]]
+
+
+def fake_info(grad_pixels: torch.Tensor, visible: torch.Tensor, radius: torch.Tensor, width=200, height=100):
+    means2d = torch.zeros(len(visible), 2, requires_grad=True)
+    means2d.grad = grad_pixels
+    return SimpleNamespace(
+        means2d=means2d, visible=visible, radii=torch.stack([radius, radius], -1).int(), width=width, height=height,
+        means2d_absgrad=grad_pixels.abs() * 2,
+        positional_gradient=lambda absolute=False: ((grad_pixels.abs() * 2 if absolute else grad_pixels) * torch.tensor([width / 2, height / 2])).norm(dim=-1),
+    )  # fmt: skip
+
+
+def context(model, optimizer, info, step, seed=0):
+    return StepContext(step=step, total_steps=30000, model=model, optimizer=optimizer, info=info, view_index=0, extent=1.0, generator=torch.Generator().manual_seed(seed))
+
+
+def test_position_learning_rate_schedule():
+    lrs = LearningRates()
+    assert position_lr(0, 30000, lrs, 2.0) == pytest.approx(1.6e-4 * 2)
+    assert position_lr(15000, 30000, lrs, 2.0) == pytest.approx(math.sqrt(1.6e-4 * 1.6e-6) * 2)
+    assert position_lr(30000, 30000, lrs, 2.0) == pytest.approx(1.6e-6 * 2)
+    assert position_lr(40000, 30000, lrs, 2.0) == pytest.approx(1.6e-6 * 2)
+
+
+def test_gradient_accumulation_over_visible_views():
+    model, optimizer = hand_model()
+    strategy = ADC()
+    state = strategy.initialize_state(model)
+    grad = torch.tensor([[1e-6, 0.0], [0.0, 2e-6], [3e-6, 4e-6], [0, 0], [1e-5, 0], [0, 0]])
+    visible = torch.tensor([True, True, True, False, True, True])
+    for step, radius in ((1, 3.0), (2, 7.0)):
+        strategy.accumulate(context(model, optimizer, fake_info(grad, visible, torch.full((6,), radius)), step), state)
+    # NDC units: pixel gradient x W/2 (100) in x and x H/2 (50) in y.
+    expected = torch.tensor([1e-4, 1e-4, math.hypot(3e-4, 2e-4), 0, 1e-3, 0])
+    torch.testing.assert_close(state["grad_sum"], 2 * expected * visible)
+    torch.testing.assert_close(state["count"], 2.0 * visible)
+    torch.testing.assert_close(state["max_radius"], 7.0 * visible)
+    torch.testing.assert_close(strategy.mean_gradient(state), expected * visible)
+
+
+def test_clone_split_prune_choose_the_right_gaussians():
+    model, optimizer = hand_model()
+    strategy = ADC(grad_threshold=2e-4)
+    state = strategy.initialize_state(model)
+    # Mean NDC gradients: 0 and 3 above the threshold; 0 is small (clone), 3 large (split).
+    state["grad_sum"] = torch.tensor([5e-4, 1e-4, 1e-4, 3e-4, 1e-4, 1e-4])
+    state["count"] = torch.ones(6)
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=600), state)
+    assert log == {"cloned": 1, "split": 1, "pruned": 1, "gaussians": 6 + 1 + 1 - 1}
+    x = model.params["means"][:, 0].detach()
+    # Order: old without the split parent (0, 1, 2, 4, 5), the clone of 0, the 2 children of 3;
+    # then Gaussian 5 (opacity 0.001) is pruned.
+    torch.testing.assert_close(x[:5], torch.tensor([0.0, 1.0, 2.0, 4.0, 0.0]))
+    children = model.params["means"][5:].detach()
+    parent_scale = torch.tensor([0.5, 0.005, 0.005])
+    assert (((children - torch.tensor([3.0, 0.0, 0.0])) / parent_scale).abs() < 3).all(), "children inside the parent's 3 sigma"
+    torch.testing.assert_close(model.scales()[5:].detach(), (parent_scale / 1.6).expand(2, 3))
+    # Adam moments: kept for survivors, zero for the clone and the children, shapes follow.
+    for name, p in model.params.items():
+        m = moments(optimizer, name)
+        assert m["exp_avg"].shape == p.shape and m["exp_avg_sq"].shape == p.shape
+        kept = m["exp_avg"].reshape(len(p), -1)[:, 0]
+        torch.testing.assert_close(kept, torch.tensor([1.0, 2.0, 3.0, 5.0, 0.0, 0.0, 0.0]))
+    # Statistics start again.
+    assert state["grad_sum"].shape == (7,) and state["grad_sum"].sum() == 0
+
+
+def test_large_gaussians_pruned_only_after_first_reset():
+    model, optimizer = hand_model()
+    strategy = ADC(reset_every=3000)
+    max_radius = torch.tensor([1.0, 25.0, 1.0, 1.0, 1.0, 1.0])  # 1 is big on screen
+    before = strategy.prune_mask(context(model, optimizer, None, step=2000), max_radius)
+    after = strategy.prune_mask(context(model, optimizer, None, step=3100), max_radius)
+    assert before.tolist() == [False, False, False, False, False, True]
+    # After the first reset also 1 (25 px > 20) and 3, 4 (scale 0.5 > 0.1 x extent).
+    assert after.tolist() == [False, True, False, True, True, True]
+
+
+def test_opacity_reset():
+    model, optimizer = hand_model()
+    ops.reset_opacity(model, optimizer, 0.01)
+    opacity = model.opacities().detach()
+    torch.testing.assert_close(opacity, torch.tensor([0.01] * 5 + [0.001]))
+    m = moments(optimizer, "opacity_logits")
+    assert m["exp_avg"].abs().sum() == 0 and m["exp_avg_sq"].abs().sum() == 0
+    assert moments(optimizer, "means")["exp_avg"].abs().sum() > 0
+
+
+def test_reset_runs_on_schedule_and_stops_after_densification():
+    model, optimizer = hand_model()
+    strategy = ADC(reset_every=3000, densify_until=15000, densify_from=500)
+    state = strategy.initialize_state(model)
+    info = lambda: fake_info(torch.zeros(model.num, 2), torch.ones(model.num, dtype=torch.bool), torch.ones(model.num))  # noqa: E731
+    assert "opacity_reset" in strategy.after_backward(context(model, optimizer, info(), 3000), state)
+    assert "opacity_reset" not in strategy.after_backward(context(model, optimizer, info(), 3001), state)
+    assert "opacity_reset" not in strategy.after_backward(context(model, optimizer, info(), 18000), state)
+
+
+def test_max_gaussians_caps_growth_keeping_the_strongest():
+    model, optimizer = hand_model()
+    strategy = ADC(max_gaussians=7)
+    state = strategy.initialize_state(model)
+    state["grad_sum"] = torch.tensor([5e-4, 9e-4, 3e-4, 3e-4, 1e-4, 1e-4])
+    state["count"] = torch.ones(6)
+    clone, split = strategy.grow_masks(context(model, optimizer, None, 600), state, strategy.mean_gradient(state) >= 2e-4)
+    # Room for one more: the strongest candidate (1) alone.
+    assert clone.tolist() == [False, True, False, False, False, False] and not split.any()
+
+
+def test_absgrad_mode_uses_absolute_accumulator():
+    model, optimizer = hand_model()
+    strategy = make_strategy("absgs")
+    assert strategy.absgrad and strategy.grad_threshold == 8e-4
+    state = strategy.initialize_state(model)
+    grad = torch.tensor([[1e-6, -1e-6]] * 6)
+    strategy.accumulate(context(model, optimizer, fake_info(grad, torch.ones(6, dtype=torch.bool), torch.ones(6)), 1), state)
+    torch.testing.assert_close(state["grad_sum"], torch.full((6,), math.hypot(2e-4, 1e-4)))
+
+
+def test_unknown_strategy_and_option():
+    with pytest.raises(ValueError, match="unknown strategy 'nope'"):
+        make_strategy("nope")
+    with pytest.raises(ValueError, match="has no option"):
+        make_strategy("adc", {"grad_treshold": 1e-4})
