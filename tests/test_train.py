@@ -7,6 +7,7 @@ import sys
 
 import pytest
 import torch
+from conftest import test_devices
 
 from cdcgs.cli import main as cli_main
 from cdcgs.datasets.procedural import make_procedural_scene
@@ -23,15 +24,18 @@ def tiny_scene(tmp_path_factory):
     return make_procedural_scene(tmp_path_factory.mktemp("scene"), views=16, width=48, height=36, points=1500)
 
 
-def tiny_config(scene, out, **overrides):
-    values = dict(data=DataConfig(data=scene), out=str(out), iters=40, device="cpu", eval_every=0, checkpoint_every=0, progress=False, sh_every=10)
+DEFAULT_DEVICE = test_devices()[0]  # cpu, unless CDCGS_TEST_DEVICES narrows it
+
+
+def tiny_config(scene, out, device=DEFAULT_DEVICE, **overrides):
+    values = dict(data=DataConfig(data=scene), out=str(out), iters=40, device=device, eval_every=0, checkpoint_every=0, progress=False, sh_every=10)
     values.update(overrides)
     return TrainConfig(**values)
 
 
-def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path):
-    initial = Trainer(tiny_config(tiny_scene, tmp_path / "zero", iters=1), SHORT).run()["test"]["psnr"]
-    result = Trainer(tiny_config(tiny_scene, tmp_path / "run", iters=250, eval_every=100), SHORT).run()
+def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path, device):
+    initial = Trainer(tiny_config(tiny_scene, tmp_path / "zero", device, iters=1), SHORT).run()["test"]["psnr"]
+    result = Trainer(tiny_config(tiny_scene, tmp_path / "run", device, iters=250, eval_every=100), SHORT).run()
     # Measured on this scene: about 19 dB after one step, about 27 dB after 250.
     assert result["test"]["psnr"] > 24.0 and result["test"]["psnr"] > initial + 4.0
     assert result["num_gaussians"] > 1500, "densification must have added Gaussians"
@@ -58,6 +62,7 @@ def test_sh_degree_schedule(tiny_scene, tmp_path):
     assert degrees[8] == 0 and degrees[9] == 1 and degrees[19] == 2 and degrees[24] == 2
 
 
+@pytest.mark.skipif(DEFAULT_DEVICE != "cpu", reason="bitwise repeatable on the CPU only: on CUDA the order of float atomic adds varies")
 def test_same_seed_same_run_and_resume_continues_it(tiny_scene, tmp_path, monkeypatch):
     straight = Trainer(tiny_config(tiny_scene, tmp_path / "a", iters=50, background="random"), SHORT)
     straight.run()
@@ -82,7 +87,7 @@ def test_same_seed_same_run_and_resume_continues_it(tiny_scene, tmp_path, monkey
         assert torch.equal(p, resumed.model.params[name]), f"{name}: the resumed run differs"
 
 
-def test_nan_loss_stops_with_last_good_checkpoint(tiny_scene, tmp_path, monkeypatch):
+def test_nan_loss_stops_with_last_good_checkpoint(tiny_scene, tmp_path, monkeypatch, device):
     import cdcgs.train.trainer as trainer_module
 
     real = trainer_module.photometric_loss
@@ -94,7 +99,7 @@ def test_nan_loss_stops_with_last_good_checkpoint(tiny_scene, tmp_path, monkeypa
         return loss * float("nan") if calls["n"] == 12 else loss
 
     monkeypatch.setattr(trainer_module, "photometric_loss", flaky)
-    trainer = Trainer(tiny_config(tiny_scene, tmp_path), SHORT)
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path, device), SHORT)
     with pytest.raises(TrainingDiverged, match="loss became nan at iteration 12.*iteration 11"):
         trainer.run()
     state = load_checkpoint(tmp_path / "checkpoint.pt")
@@ -118,19 +123,19 @@ def test_ctrl_c_writes_checkpoint_and_ply(tiny_scene, tmp_path, monkeypatch):
     assert os.path.isfile(tmp_path / "point_cloud.ply")
 
 
-def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys):
+def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
     out = tmp_path / "cli"
-    code = cli_main(["train", "--data", str(tiny_scene), "--out", str(out), "--iters", "30", "--device", "cpu", "--no-progress",
+    code = cli_main(["train", "--data", str(tiny_scene), "--out", str(out), "--iters", "30", "--device", device, "--no-progress",
                      "--eval-every", "0", "--densify-from", "10", "--densify-every", "10", "--max-gaussians", "2000"])  # fmt: skip
     assert code == 0
     text = capsys.readouterr().out
     assert "test: PSNR" in text and f"outputs in {out}" in text
     assert json.load(open(out / "config.json"))["strategy"]["max_gaussians"] == 2000
-    assert cli_main(["eval", str(out), "--device", "cpu"]) == 0
+    assert cli_main(["eval", str(out), "--device", device]) == 0
     assert "test: PSNR" in capsys.readouterr().out
-    assert cli_main(["render", str(out), "--device", "cpu"]) == 0
+    assert cli_main(["render", str(out), "--device", device]) == 0
     assert len(os.listdir(out / "renders_test")) == 2
-    assert cli_main(["render", str(out), "--path", "orbit", "--frames", "6", "--video", str(tmp_path / "orbit.mp4"), "--device", "cpu"]) == 0
+    assert cli_main(["render", str(out), "--path", "orbit", "--frames", "6", "--video", str(tmp_path / "orbit.mp4"), "--device", device]) == 0
     assert (tmp_path / "orbit.mp4").stat().st_size > 1000
     assert cli_main(["export", str(out), str(tmp_path / "model.ply")]) == 0
     assert read_ply(tmp_path / "model.ply").means.shape[0] == read_ply(out / "point_cloud.ply").means.shape[0]
@@ -148,7 +153,7 @@ def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys):
     ],
 )
 def test_cli_bad_input(tiny_scene, tmp_path, capsys, argv, message):
-    argv = [a.replace("{scene}", str(tiny_scene)) for a in argv] + (["--out", str(tmp_path / "o"), "--no-progress"] if argv[0] == "train" else [])
+    argv = [a.replace("{scene}", str(tiny_scene)) for a in argv] + (["--out", str(tmp_path / "o"), "--no-progress", "--device", DEFAULT_DEVICE] if argv[0] == "train" and "--device" not in argv else [])
     assert cli_main(argv) == 2
     assert message in capsys.readouterr().err
 
