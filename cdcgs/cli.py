@@ -206,6 +206,11 @@ def cmd_render(args) -> int:
 
     from .render import rasterize
 
+    if args.video:
+        try:
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError:
+            raise ValueError("--video needs the imageio-ffmpeg package (pip install imageio-ffmpeg); without it, render PNGs") from None
     config, scene, model = _load_run(args.out_dir, args.device)
     background = torch.ones(3, device=model.device) if config.background == "white" else torch.zeros(3, device=model.device)
     if args.path == "orbit":

@@ -116,6 +116,9 @@ def test_large_gaussians_pruned_only_after_first_reset():
     assert before.tolist() == [False, False, False, False, False, True]
     # After the first reset also 1 (25 px > 20) and 3, 4 (scale 0.5 > 0.1 x extent).
     assert after.tolist() == [False, True, False, True, True, True]
+    # The default preset "adc" leaves the screen size alone (gsplat's default); "3dgs" does not.
+    assert make_strategy("adc").prune_mask(context(model, optimizer, None, step=3100), max_radius).tolist() == [False, False, False, True, True, True]
+    assert make_strategy("3dgs").prune_screen_size == 20.0
 
 
 def test_opacity_reset():
