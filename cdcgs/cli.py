@@ -63,10 +63,10 @@ def _build_dataclass(cls, values: dict, prefix: str = ""):
 
 
 def _strategy_option_names() -> dict:
-    from .train.strategy import STRATEGIES
+    from .train.strategy import registry
 
     names = {}
-    for cls, _ in STRATEGIES.values():
+    for cls, _ in registry().values():
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             names.setdefault(f.name, (hints[f.name], cls.__doc__ or ""))
@@ -265,6 +265,24 @@ def cmd_download(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from .train.trainer import plot_correlation
+
+    histories = {}
+    for out in args.out_dirs:
+        try:
+            history = json.load(open(os.path.join(out, "history.json")))
+            config = json.load(open(os.path.join(out, "config.json")))
+        except (OSError, ValueError) as err:
+            raise InputError(out, f"not a finished cdcgs run ({err})") from None
+        if not any("correlation" in e for e in history.get("strategy", [])):
+            raise InputError(out, "the run logged no complexity-density correlation (train with a CDC strategy, or --log-correlation)")
+        histories[f"{config['train']['strategy']} ({os.path.basename(os.path.normpath(out))})"] = history
+    plot_correlation(histories, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cdcgs", description="3D Gaussian Splatting with CDC-GS densification on Warp kernels.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -286,6 +304,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out_dir", help="output folder of cdcgs train")
     p.add_argument("ply", help="PLY file to write")
     p.set_defaults(func=cmd_export)
+    p = sub.add_parser("compare", help="plot the complexity-density correlation of several runs (CDC-GS Fig. 4b)")
+    p.add_argument("out_dirs", nargs="+", help="output folders of cdcgs train")
+    p.add_argument("--out", default="correlation.png", help="PNG to write (default: correlation.png)")
+    p.set_defaults(func=cmd_compare)
     p = sub.add_parser("download", help="download a public dataset scene")
     p.add_argument("dataset", choices=["mipnerf360"], help="dataset")
     p.add_argument("--scene", required=True, help="scene name, e.g. garden")

@@ -173,3 +173,73 @@ def blend_backward_kernel(
             wp.atomic_add(grad_means2d_out, g, grad_mean)
             wp.atomic_add(absgrad_means2d_out, g, wp.vec2(wp.abs(grad_mean[0]), wp.abs(grad_mean[1])))
             wp.atomic_add(grad_conics_out, g, grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy))
+
+
+@wp.kernel(enable_backward=False)
+def complexity_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_gauss_ids: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    last_contributor: wp.array2d(dtype=wp.int32),
+    complexity_map: wp.array2d(dtype=wp.uint8),
+    width: int,
+    height: int,
+    tiles_x: int,
+    max_out: wp.array(dtype=float),
+    sum_out: wp.array(dtype=float),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """CDC-GS complexity of each Gaussian in one view: max (and sum, count) over the pixels it
+    composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
+
+    Two passes over each pixel's list, in compositing order up to its last contributor (the same
+    alpha and transmittance rules as the forward blend): the first finds w_max, the second adds
+    every contribution with an exact atomic max (and atomic sums for the mean aggregation).
+    ``complexity_map`` holds HF in [0, 1] as uint8 (x 255).
+    """
+    pix = tile_pixel(wp.tid(), tiles_x)
+    x = pix[0]
+    y = pix[1]
+    if x >= width or y >= height:
+        return
+    hf = float(complexity_map[y, x]) / 255.0
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+    start = tile_ranges[pix[2], 0]
+    last = last_contributor[y, x]
+    w_max = float(1.0e-4)
+    transmittance = float(1.0)
+    for k in range(start, last + 1):
+        g = sorted_gauss_ids[k]
+        mean = means2d[g]
+        conic = conics[g]
+        dx = mean[0] - px
+        dy = mean[1] - py
+        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+        if power > 0.0:
+            continue
+        alpha = wp.min(MAX_ALPHA, opacities[g] * wp.exp(power))
+        if alpha < ALPHA_THRESHOLD:
+            continue
+        w_max = wp.max(w_max, alpha * transmittance)
+        transmittance = transmittance * (1.0 - alpha)
+    transmittance = float(1.0)
+    for k in range(start, last + 1):
+        g = sorted_gauss_ids[k]
+        mean = means2d[g]
+        conic = conics[g]
+        dx = mean[0] - px
+        dy = mean[1] - py
+        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+        if power > 0.0:
+            continue
+        alpha = wp.min(MAX_ALPHA, opacities[g] * wp.exp(power))
+        if alpha < ALPHA_THRESHOLD:
+            continue
+        value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
+        wp.atomic_max(max_out, g, value)
+        wp.atomic_add(sum_out, g, value)
+        wp.atomic_add(count_out, g, 1)
+        transmittance = transmittance * (1.0 - alpha)

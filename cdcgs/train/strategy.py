@@ -34,7 +34,9 @@ class StepContext:
     view_index: int  # index of the rendered view in the training views
     extent: float
     generator: torch.Generator  # on the model's device: every random draw of a strategy uses it
-    render: Callable | None = None  # render(view_index) -> (image, alpha, info), no grad
+    render: Callable | None = None  # render(view_index) -> (image, alpha, info) of a training view
+    views: list | None = None  # the training views (with their images)
+    out_dir: str | None = None  # the run's output folder
 
 
 @dataclass(kw_only=True)
@@ -173,28 +175,37 @@ class ADC:
         return self.apply(ctx, state, clone, split)
 
 
-# Named presets: name -> (strategy class, its preset options). "3dgs" is the published rule set;
-# "adc", the default, drops the 20 px screen-size prune as gsplat's DefaultStrategy does: on
-# bonsai (800 x 533, 30k iterations) that prune cost 0.86 dB of test PSNR (README).
-STRATEGIES: dict[str, tuple[type, dict]] = {
-    "adc": (ADC, {"prune_screen_size": 0.0}),
-    "3dgs": (ADC, {}),
-    "absgs": (ADC, {"absgrad": True, "grad_threshold": 8e-4, "prune_screen_size": 0.0}),
-}
+def registry() -> dict[str, tuple[type, dict]]:
+    """Named presets: name -> (strategy class, preset options).
+
+    "adc", the default, is 3DGS's density control without the 20 px screen-size prune, as gsplat's
+    DefaultStrategy: on bonsai (800 x 533, 30k iterations) that prune cost 0.86 dB of test PSNR
+    (README). "3dgs" is the published rule set (with the prune), as the CDC-GS baseline; the CDC-GS
+    variants are configurations of :class:`cdcgs.train.cdc.CDC`.
+    """
+    from .cdc import CDC, PRESETS
+
+    presets = {
+        "adc": (ADC, {"prune_screen_size": 0.0}),
+        "absgs": (ADC, {"absgrad": True, "grad_threshold": 8e-4, "prune_screen_size": 0.0}),
+    }
+    presets.update({name: (CDC, options) for name, options in PRESETS.items()})
+    return presets
 
 
 def strategy_fields(name: str) -> dict:
     """The hyperparameters (dataclass fields) of a named strategy, with their preset values."""
-    if name not in STRATEGIES:
-        raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(STRATEGIES))}")
-    cls, preset = STRATEGIES[name]
+    presets = registry()
+    if name not in presets:
+        raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(presets))}")
+    cls, preset = presets[name]
     return {f.name: preset.get(f.name, f.default) for f in dataclasses.fields(cls)}
 
 
 def make_strategy(name: str, options: dict | None = None):
     """The named preset with ``options`` overriding its hyperparameters (names checked)."""
     fields = strategy_fields(name)
-    cls, preset = STRATEGIES[name]
+    cls, preset = registry()[name]
     options = dict(options or {})
     unknown = sorted(set(options) - set(fields))
     if unknown:

@@ -196,7 +196,7 @@ class Trainer:
         ctx = StepContext(
             step=step, total_steps=config.iters, model=self.model, optimizer=self.optimizer, info=info,
             view_index=view_index, extent=self.scene.extent, generator=self.generator,
-            render=lambda i: self._render(i),
+            render=self._render, views=self.scene.train, out_dir=self.out,
         )  # fmt: skip
         self.strategy.before_backward(ctx, self.strategy_state)
         loss.backward()
@@ -278,7 +278,33 @@ class Trainer:
         with open(os.path.join(self.out, "history.json"), "w") as f:
             json.dump(self.history, f)
         plot_curves(self.history, os.path.join(self.out, "curves.png"))
+        if any("correlation" in entry for entry in self.history["strategy"]):
+            plot_correlation({self.strategy.config()["name"] + f" ({self.config.strategy})": self.history}, os.path.join(self.out, "correlation.png"))
         return result
+
+
+def correlation_curve(history: dict) -> tuple[list[int], list[float]]:
+    points = [(e["step"], e["correlation"]) for e in history["strategy"] if "correlation" in e]
+    return [p[0] for p in points], [p[1] for p in points]
+
+
+def plot_correlation(histories: dict, path: str) -> None:
+    """Pearson correlation of complexity and density at each densification step (CDC-GS Fig. 4b)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    for label, history in histories.items():
+        steps, values = correlation_curve(history)
+        ax.plot(steps, values, label=label)
+    ax.set(title="complexity-density correlation", xlabel="iteration", ylabel="Pearson r(Gamma, Psi)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def plot_curves(history: dict, path: str) -> None:

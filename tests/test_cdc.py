@@ -1,0 +1,131 @@
+"""CDC-GS: CAAT, z-scores, candidate sets, sampling, presets, and the strategy in a training run."""
+
+import json
+import math
+import os
+
+import pytest
+import torch
+from test_strategy import context, hand_model
+from test_train import DEFAULT_DEVICE, tiny_config, tiny_scene  # noqa: F401  (fixture)
+
+from cdcgs.cli import main as cli_main
+from cdcgs.train.cdc import CDC, PRESETS, caat_threshold, draw, pearson, quantile_score, zscore
+from cdcgs.train.strategy import make_strategy
+from cdcgs.train.trainer import Trainer
+
+
+def test_caat_threshold_hand_values():
+    gamma = torch.tensor([0.0, 1.0, 0.5, -3.0, 7.0])
+    tau = caat_threshold(gamma, 1.5e-4, 2e-4, 6.0)
+    at_one = 1.5e-4 + 0.5e-4 * (1 - 2 * (1 / (1 + math.exp(-6)) - 0.5))
+    at_half = 1.5e-4 + 0.5e-4 * (1 - 2 * (1 / (1 + math.exp(-3)) - 0.5))
+    torch.testing.assert_close(tau, torch.tensor([2e-4, at_one, at_half, 2e-4, at_one]))
+    assert at_one == pytest.approx(1.5012e-4, rel=1e-3)  # "the most complex gets about 1.5e-4"
+
+
+def test_zscores_and_candidate_sets():
+    gamma = torch.tensor([0.9, 0.8, 0.1, 0.0, 0.5, 0.2])
+    psi = torch.tensor([1.0, 9.0, 8.0, 2.0, 5.0, 5.0])
+    zg, zp = zscore(gamma), zscore(psi)
+    torch.testing.assert_close(zg, (gamma - gamma.mean()) / (gamma.std() + 1e-6))
+    s = zg * zp
+    complex_sparse = ((s < 0) & (zg > 0)).tolist()
+    flat_crowded = ((s < 0) & (zg < 0)).tolist()
+    # mean Gamma 0.4167, mean Psi 5: Gaussian 0 is complex and sparse, 2 is flat and crowded;
+    # 1 (complex, crowded) and 3 (flat, sparse) agree; 4, 5 sit at the mean density (z = 0).
+    assert complex_sparse == [True, False, False, False, False, False]
+    assert flat_crowded == [False, False, True, False, False, False]
+    q = quantile_score(psi, 0.25)
+    torch.testing.assert_close(q, (psi - torch.quantile(psi, 0.25)) / (psi.std() + 1e-6))
+
+
+def test_pearson():
+    a = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    assert pearson(a, 2 * a + 1) == pytest.approx(1.0)
+    assert pearson(a, -a) == pytest.approx(-1.0)
+    assert pearson(a, torch.ones(4)) == 0.0
+
+
+def test_draw_counts_candidates_no_duplicates():
+    g = torch.Generator().manual_seed(0)
+    weights = torch.tensor([0.0, 1.0, 0.0, 2.0, 3.0, 0.0, 4.0])
+    mask = draw(weights, 3, g)
+    assert mask.sum() == 3 and not mask[weights == 0].any()
+    assert draw(weights, 10, g).tolist() == (weights > 0).tolist()  # fewer candidates than asked
+    assert not draw(weights, 0, g).any() and not draw(torch.zeros(5), 2, g).any()
+
+
+def test_draw_probabilities_follow_weights():
+    g = torch.Generator().manual_seed(1)
+    weights = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    counts = torch.zeros(4)
+    trials = 20000
+    for _ in range(trials):
+        counts += draw(weights, 1, g).float()
+    expected = weights / weights.sum() * trials
+    # Chi-square with 3 degrees of freedom: 16.3 is the 0.1% critical value.
+    chi2 = (((counts - expected) ** 2) / expected).sum().item()
+    assert chi2 < 16.3, f"frequencies {counts.tolist()} vs expected {expected.tolist()}"
+
+
+def test_presets_cover_the_variants_table():
+    assert set(PRESETS) == {"3dgs", "cdc", "cdc-hq", "caat-only", "cdc-only", "cdc-prune-only", "cdc-reverse", "cdc-compact"}
+    cdc = make_strategy("cdc")
+    assert isinstance(cdc, CDC) and cdc.rho_densify == 0.01 and cdc.rho_prune == 0.01 and cdc.caat and cdc.periodic_prune
+    assert make_strategy("cdc-hq").rho_densify == 0.02
+    assert not make_strategy("cdc-only").caat
+    po = make_strategy("cdc-prune-only")
+    assert po.cdc_prune and not po.cdc_densify and not po.caat and po.periodic_prune
+    assert make_strategy("cdc-reverse").reverse
+    compact = make_strategy("cdc-compact")
+    assert compact.centre == "quantile" and compact.rho_prune == 0.5
+    baseline = make_strategy("3dgs")
+    assert not (baseline.cdc_densify or baseline.cdc_prune or baseline.caat or baseline.periodic_prune or baseline.needs_complexity)
+    assert baseline.prune_screen_size == 20.0
+    with pytest.raises(ValueError, match="complexity_schedule must be one of full, online"):
+        make_strategy("cdc", {"complexity_schedule": "sometimes"})
+
+
+def test_periodic_prune_replaces_per_step_pruning():
+    model, optimizer = hand_model()
+    strategy = CDC(cdc_densify=False, cdc_prune=False, caat=False, log_correlation=False)
+    max_radius = torch.full((6,), 100.0)
+    assert not strategy.prune_mask(context(model, optimizer, None, step=9000), max_radius).any()
+    state = strategy.initialize_state(model)
+    state["count"] = torch.ones(6)
+    # Opacities: 0.5 (0-4), 0.001 (5). At a multiple of 3000, opacity < 0.1 goes.
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=3000), state)
+    assert log["periodic_prune"] == 1 and model.num == 5
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=3100), state)
+    assert "periodic_prune" not in log and model.num == 5
+
+
+@pytest.mark.parametrize("schedule", ["full", "online"])
+def test_cdc_trains_and_logs(tiny_scene, tmp_path, schedule):  # noqa: F811
+    config = tiny_config(tiny_scene, tmp_path, strategy="cdc", iters=60)
+    options = {"densify_from": 10, "densify_until": 50, "densify_every": 10, "complexity_schedule": schedule, "periodic_prune_every": 30, "save_maps": 2}
+    trainer = Trainer(config, options)
+    result = trainer.run()
+    steps = [e for e in trainer.history["strategy"] if "correlation" in e]
+    assert [e["step"] for e in steps] == [20, 30, 40, 50]
+    for entry in steps:
+        assert -1 <= entry["correlation"] <= 1
+        assert entry["cdc_densify"] > 0 and entry["cdc_prune"] > 0
+    assert any("periodic_prune" in e for e in trainer.history["strategy"])
+    assert sorted(os.listdir(tmp_path / "complexity_maps")) == ["view_001.png", "view_002.png"]
+    assert (tmp_path / "correlation.png").stat().st_size > 1000
+    assert result["strategy"]["complexity_schedule"] == schedule
+    # Draw counts: floor(rho x N) of the Gaussians at each step, or every candidate when fewer.
+    for e in steps:
+        assert e["cdc_densify"] == min(math.floor(0.01 * e["gaussians_before"]), e["densify_candidates"])
+        assert e["cdc_prune"] == min(math.floor(0.01 * e["gaussians_before"]), e["prune_candidates"])
+
+
+def test_compare_plots_runs(tiny_scene, tmp_path, capsys):  # noqa: F811
+    for name, opts in (("cdc", {}), ("3dgs", {"log_correlation": True})):
+        Trainer(tiny_config(tiny_scene, tmp_path / name, strategy=name, iters=30), {"densify_from": 10, "densify_until": 25, "densify_every": 10, **opts}).run()
+    assert cli_main(["compare", str(tmp_path / "cdc"), str(tmp_path / "3dgs"), "--out", str(tmp_path / "fig.png")]) == 0
+    assert (tmp_path / "fig.png").stat().st_size > 1000
+    assert cli_main(["compare", str(tmp_path / "nope")]) == 2
+    assert json.load(open(tmp_path / "cdc" / "config.json"))["strategy"]["name"] == "CDC"
