@@ -27,6 +27,18 @@ def tiny_scene(tmp_path_factory):
 DEFAULT_DEVICE = test_devices()[0]  # cpu, unless CDCGS_TEST_DEVICES narrows it
 
 
+def interrupt_at(monkeypatch, step: int) -> None:
+    """Make training raise KeyboardInterrupt (Ctrl-C) when it is about to take ``step + 1``."""
+    real_step = Trainer.train_step
+
+    def interrupted(self):
+        if self.step == step:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", interrupted)
+
+
 def tiny_config(scene, out, device=DEFAULT_DEVICE, **overrides):
     values = dict(data=DataConfig(data=scene), out=str(out), iters=40, device=device, eval_every=0, checkpoint_every=0, progress=False, sh_every=10)
     values.update(overrides)
@@ -69,17 +81,10 @@ def test_same_seed_same_run_and_resume_continues_it(tiny_scene, tmp_path, monkey
     again = Trainer(tiny_config(tiny_scene, tmp_path / "b", iters=50, background="random"), SHORT)
     again.run()
     # The same run, stopped by Ctrl-C at iteration 30 (mid-schedule, after densification steps).
-    real_step = Trainer.train_step
-
-    def interrupted(self):
-        if self.step == 30:
-            raise KeyboardInterrupt
-        return real_step(self)
-
-    monkeypatch.setattr(Trainer, "train_step", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        Trainer(tiny_config(tiny_scene, tmp_path / "c", iters=50, background="random"), SHORT).run()
-    monkeypatch.setattr(Trainer, "train_step", real_step)
+    with monkeypatch.context() as patch:
+        interrupt_at(patch, 30)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(tiny_config(tiny_scene, tmp_path / "c", iters=50, background="random"), SHORT).run()
     resumed = Trainer(tiny_config(tiny_scene, tmp_path / "c", iters=50, background="random", resume=True), SHORT)
     resumed.run()
     for name, p in straight.model.params.items():
@@ -109,14 +114,7 @@ def test_nan_loss_stops_with_last_good_checkpoint(tiny_scene, tmp_path, monkeypa
 
 def test_ctrl_c_writes_checkpoint_and_ply(tiny_scene, tmp_path, monkeypatch):
     trainer = Trainer(tiny_config(tiny_scene, tmp_path), SHORT)
-    real_step = Trainer.train_step
-
-    def interrupted(self):
-        if self.step == 15:
-            raise KeyboardInterrupt
-        return real_step(self)
-
-    monkeypatch.setattr(Trainer, "train_step", interrupted)
+    interrupt_at(monkeypatch, 15)
     with pytest.raises(KeyboardInterrupt):
         trainer.run()
     assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == 15

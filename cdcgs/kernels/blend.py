@@ -25,6 +25,21 @@ def tile_pixel(tid: int, tiles_x: int):
     return wp.vec3i(tile_x * 16 + local % 16, tile_y * 16 + local // 16, tile)
 
 
+@wp.func
+def splat_alpha(mean: wp.vec2, conic: wp.vec3, opacity: float, px: float, py: float):
+    """alpha = min(0.99, opacity exp(-d^T conic d / 2)) at (px, py); 0 where the Gaussian does not
+    composite (power > 0, or alpha below 1/255)."""
+    dx = mean[0] - px
+    dy = mean[1] - py
+    power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+    if power > 0.0:
+        return 0.0
+    alpha = wp.min(MAX_ALPHA, opacity * wp.exp(power))
+    if alpha < ALPHA_THRESHOLD:
+        return 0.0
+    return alpha
+
+
 @wp.kernel(enable_backward=False)
 def blend_forward_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
@@ -60,15 +75,8 @@ def blend_forward_kernel(
     last = start - 1
     for k in range(start, end):
         g = sorted_gauss_ids[k]
-        mean = means2d[g]
-        conic = conics[g]
-        dx = mean[0] - px
-        dy = mean[1] - py
-        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
-        if power > 0.0:
-            continue
-        alpha = wp.min(MAX_ALPHA, opacities[g] * wp.exp(power))
-        if alpha < ALPHA_THRESHOLD:
+        alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
+        if alpha == 0.0:
             continue
         next_transmittance = transmittance * (1.0 - alpha)
         if next_transmittance < MIN_TRANSMITTANCE:
@@ -213,30 +221,16 @@ def complexity_kernel(
     transmittance = float(1.0)
     for k in range(start, last + 1):
         g = sorted_gauss_ids[k]
-        mean = means2d[g]
-        conic = conics[g]
-        dx = mean[0] - px
-        dy = mean[1] - py
-        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
-        if power > 0.0:
-            continue
-        alpha = wp.min(MAX_ALPHA, opacities[g] * wp.exp(power))
-        if alpha < ALPHA_THRESHOLD:
+        alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
+        if alpha == 0.0:
             continue
         w_max = wp.max(w_max, alpha * transmittance)
         transmittance = transmittance * (1.0 - alpha)
     transmittance = float(1.0)
     for k in range(start, last + 1):
         g = sorted_gauss_ids[k]
-        mean = means2d[g]
-        conic = conics[g]
-        dx = mean[0] - px
-        dy = mean[1] - py
-        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
-        if power > 0.0:
-            continue
-        alpha = wp.min(MAX_ALPHA, opacities[g] * wp.exp(power))
-        if alpha < ALPHA_THRESHOLD:
+        alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
+        if alpha == 0.0:
             continue
         value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
         wp.atomic_max(max_out, g, value)
