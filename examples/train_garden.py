@@ -57,8 +57,10 @@ def main():
     config = TrainConfig(
         data=data, out=args.out, strategy=args.strategy, iters=iters, device=args.device,
         sh_every=1000 if iters >= 10_000 else max(iters // 6, 1), eval_every=7000 if iters >= 10_000 else 0,
-        checkpoint_every=5000 if iters >= 10_000 else 0, progress=not args.no_progress,
+        checkpoint_every=5000 if iters >= 10_000 else 0, progress=not args.no_progress, overwrite=True,
     )  # fmt: skip
+    if os.path.isfile(os.path.join(args.out, "checkpoint.pt")):
+        print(f"replacing the previous run in {args.out}")
     result = Trainer(config, options).run()
     test = result["test"]
     lpips = f"{test['lpips']:.4f}" if test.get("lpips") is not None else "unavailable"

@@ -11,6 +11,7 @@ from conftest import test_devices
 
 from cdcgs.cli import main as cli_main
 from cdcgs.datasets.procedural import make_procedural_scene
+from cdcgs.errors import InputError
 from cdcgs.io import load_checkpoint, read_ply
 from cdcgs.train.config import DataConfig, TrainConfig
 from cdcgs.train.trainer import Trainer, TrainingDiverged
@@ -62,6 +63,17 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
     history = json.load(open(out / "history.json"))
     assert [e["step"] for e in history["eval"]] == [100, 200, 250]
     assert read_ply(out / "point_cloud.ply").means.shape[0] == metrics["num_gaussians"]
+
+
+def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):
+    Trainer(tiny_config(tiny_scene, tmp_path, iters=5), SHORT).run()
+    before = (tmp_path / "checkpoint.pt").read_bytes()
+    with pytest.raises(InputError, match="already holds a cdcgs run .*--resume.*--overwrite"):
+        Trainer(tiny_config(tiny_scene, tmp_path, iters=5), SHORT).run()
+    assert (tmp_path / "checkpoint.pt").read_bytes() == before
+    argv = ["train", "--data", str(tiny_scene), "--out", str(tmp_path), "--iters", "5", "--no-progress", "--device", DEFAULT_DEVICE]
+    assert cli_main(argv) == 2 and "already holds a cdcgs run" in capsys.readouterr().err
+    assert cli_main(argv + ["--overwrite"]) == 0
 
 
 def test_sh_degree_schedule(tiny_scene, tmp_path):

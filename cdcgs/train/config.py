@@ -49,6 +49,7 @@ class TrainConfig:
     log_every: int = option(50, "iterations between points of the loss/PSNR/#Gaussians curves")
     save_renders: bool = option(True, "save each test view as ground truth | render | error map")
     resume: bool = option(False, "continue the run in --out from its checkpoint.pt")
+    overwrite: bool = option(False, "replace a finished or interrupted run already in --out (otherwise refused)")
     progress: bool = option(True, "show a progress bar")
 
     def __post_init__(self):

@@ -71,6 +71,10 @@ class Trainer:
 
     def _setup(self):
         config = self.config
+        if not config.resume and not config.overwrite:
+            previous = [name for name in ("checkpoint.pt", "metrics.json", "point_cloud.ply") if os.path.isfile(os.path.join(self.out, name))]
+            if previous:
+                raise InputError(self.out, f"already holds a cdcgs run ({', '.join(previous)}); pass --resume to continue it, --overwrite to replace it, or choose another --out")
         os.makedirs(self.out, exist_ok=True)
         resume_state = None
         if config.resume:
