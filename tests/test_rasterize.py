@@ -124,6 +124,24 @@ def test_vjp_matches_reference(device, scene_name, sh_degree, antialiased):
         torch.testing.assert_close(ours.grad.double().cpu(), expected, atol=tol, rtol=0, msg=lambda m, name=name: f"{name}: {m}")
 
 
+@pytest.mark.parametrize("sh_degree", [1, 2])
+def test_sh_vjp_below_the_stored_degree(device, sh_degree):
+    """Degree-3 coefficients rendered at degree 1 or 2: the written-out SH adjoint matches the
+    reference for every degree, and coefficients above the degree get exactly zero."""
+    n, w, h, seed = SCENES["hard-50"]
+    scene = make_scene(n, w, h, sh_degree=3, seed=seed, hard_cases=False)
+    (tensors, _, image, _, _), (ref_tensors, _, ref) = _render_both(scene, device, sh_degree=sh_degree, requires_grad=True)
+    cot = torch.randn(h, w, 3, generator=torch.Generator().manual_seed(seed))
+    (image * cot.to(device)).sum().backward()
+    (ref[0] * cot).sum().backward()
+    used = (sh_degree + 1) ** 2
+    for name, ours, theirs in (("means", tensors[0], ref_tensors[0]), ("sh", tensors[4], ref_tensors[4])):
+        tol = 1e-3 * theirs.grad.abs().max().item()
+        torch.testing.assert_close(ours.grad.double().cpu(), theirs.grad, atol=tol, rtol=0, msg=lambda m, name=name: f"{name}: {m}")
+    assert tensors[4].grad[:, :used].abs().max() > 0
+    assert torch.equal(tensors[4].grad[:, used:].cpu(), torch.zeros_like(tensors[4].grad[:, used:].cpu()))
+
+
 def test_positional_gradient_is_ndc_scaled_means2d_gradient(device):
     scene = make_scene(80, 48, 32, sh_degree=1, seed=5, hard_cases=False)
     tensors = [t.to(device).requires_grad_() for t in scene.tensors()]

@@ -7,6 +7,7 @@ stored, recovering transmittance by division, and accumulates per-Gaussian gradi
 
 import warp as wp
 
+from .lanes import lane_any, lane_leads, lane_max, lane_max_int, lane_sum, lane_sum_vec2, lane_sum_vec3
 from .projection import ALPHA_THRESHOLD
 
 # Alpha is clamped here so that one Gaussian never makes a pixel fully opaque (3DGS).
@@ -122,65 +123,94 @@ def blend_backward_kernel(
 
     Also accumulates, per Gaussian, the sum over pixels of the absolute per-pixel gradient of its
     2D mean (AbsGS).
+
+    The 32 lanes of a warp (two rows of one tile) walk the tile's list together, from the last
+    contributor of any of them down to the tile's start; a lane whose pixel the Gaussian does not
+    touch adds zeros. Each Gaussian's gradients are summed over the warp in registers and one lane
+    adds them to global memory (``lanes``), so no lane may leave the loop early.
     """
     pix = tile_pixel(wp.tid(), tiles_x)
     x = pix[0]
     y = pix[1]
-    if x >= width or y >= height:
-        return
     px = float(x) + 0.5
     py = float(y) + 0.5
     start = tile_ranges[pix[2], 0]
 
-    final_transmittance = transmittance[y, x]
+    final_transmittance = float(1.0)
+    g_color = wp.vec3(0.0, 0.0, 0.0)
+    g_depth = float(0.0)
+    g_alpha = float(0.0)
+    last = start - 1  # pixels outside the image take part in the warp's collectives with nothing to add
+    if x < width and y < height:
+        final_transmittance = transmittance[y, x]
+        g_color = grad_image[y, x]
+        g_depth = grad_depth[y, x]
+        g_alpha = grad_alpha[y, x]
+        last = last_contributor[y, x]
     t = final_transmittance
-    g_color = grad_image[y, x]
-    g_depth = grad_depth[y, x]
     # d(color)/d(alpha_i) and d(alpha_pixel)/d(alpha_i) both carry T_final / (1 - alpha_i).
-    g_final = grad_alpha[y, x] - wp.dot(background[0], g_color)
+    g_final = g_alpha - wp.dot(background[0], g_color)
 
     behind_color = wp.vec3(0.0, 0.0, 0.0)  # what is composited behind Gaussian i, per unit transmittance
     behind_depth = float(0.0)
     prev_alpha = float(0.0)
     prev_color = wp.vec3(0.0, 0.0, 0.0)
     prev_depth = float(0.0)
-    k = last_contributor[y, x]
+    k = lane_max_int(last)
     while k >= start:
         g = sorted_gauss_ids[k]
-        k -= 1
         mean = means2d[g]
         conic = conics[g]
+        opacity = opacities[g]
         dx = mean[0] - px
         dy = mean[1] - py
         power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
-        if power > 0.0:
-            continue
-        gauss = wp.exp(power)
-        opacity = opacities[g]
+        gauss = wp.exp(wp.min(power, 0.0))
         raw_alpha = opacity * gauss
         alpha = wp.min(MAX_ALPHA, raw_alpha)
-        if alpha < ALPHA_THRESHOLD:
-            continue
-        t = t / (1.0 - alpha)
-        behind_color = prev_alpha * prev_color + (1.0 - prev_alpha) * behind_color
-        behind_depth = prev_alpha * prev_depth + (1.0 - prev_alpha) * behind_depth
-        c = colors[g]
-        z = depths[g]
-        weight = alpha * t
-        wp.atomic_add(grad_colors_out, g, weight * g_color)
-        wp.atomic_add(grad_depths_out, g, weight * g_depth)
-        grad_alpha_i = t * (wp.dot(c - behind_color, g_color) + (z - behind_depth) * g_depth)
-        grad_alpha_i += final_transmittance / (1.0 - alpha) * g_final
-        prev_alpha = alpha
-        prev_color = c
-        prev_depth = z
-        if raw_alpha < MAX_ALPHA:
-            wp.atomic_add(grad_opacities_out, g, gauss * grad_alpha_i)
-            grad_power = opacity * gauss * grad_alpha_i
-            grad_mean = grad_power * wp.vec2(-(conic[0] * dx + conic[1] * dy), -(conic[2] * dy + conic[1] * dx))
-            wp.atomic_add(grad_means2d_out, g, grad_mean)
-            wp.atomic_add(absgrad_means2d_out, g, wp.vec2(wp.abs(grad_mean[0]), wp.abs(grad_mean[1])))
-            wp.atomic_add(grad_conics_out, g, grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy))
+        valid = int(0)
+        if k <= last and power <= 0.0 and alpha >= ALPHA_THRESHOLD:
+            valid = 1
+        d_color = wp.vec3(0.0, 0.0, 0.0)
+        d_depth = float(0.0)
+        d_opacity = float(0.0)
+        d_mean = wp.vec2(0.0, 0.0)
+        d_conic = wp.vec3(0.0, 0.0, 0.0)
+        if valid != 0:
+            t = t / (1.0 - alpha)
+            behind_color = prev_alpha * prev_color + (1.0 - prev_alpha) * behind_color
+            behind_depth = prev_alpha * prev_depth + (1.0 - prev_alpha) * behind_depth
+            c = colors[g]
+            z = depths[g]
+            weight = alpha * t
+            d_color = weight * g_color
+            d_depth = weight * g_depth
+            grad_alpha_i = t * (wp.dot(c - behind_color, g_color) + (z - behind_depth) * g_depth)
+            grad_alpha_i += final_transmittance / (1.0 - alpha) * g_final
+            prev_alpha = alpha
+            prev_color = c
+            prev_depth = z
+            if raw_alpha < MAX_ALPHA:
+                d_opacity = gauss * grad_alpha_i
+                grad_power = opacity * gauss * grad_alpha_i
+                d_mean = grad_power * wp.vec2(-(conic[0] * dx + conic[1] * dy), -(conic[2] * dy + conic[1] * dx))
+                d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
+        if lane_any(valid) != 0:
+            d_abs = wp.vec2(wp.abs(d_mean[0]), wp.abs(d_mean[1]))
+            d_color = lane_sum_vec3(d_color)
+            d_depth = lane_sum(d_depth)
+            d_opacity = lane_sum(d_opacity)
+            d_mean = lane_sum_vec2(d_mean)
+            d_abs = lane_sum_vec2(d_abs)
+            d_conic = lane_sum_vec3(d_conic)
+            if lane_leads() != 0:
+                wp.atomic_add(grad_colors_out, g, d_color)
+                wp.atomic_add(grad_depths_out, g, d_depth)
+                wp.atomic_add(grad_opacities_out, g, d_opacity)
+                wp.atomic_add(grad_means2d_out, g, d_mean)
+                wp.atomic_add(absgrad_means2d_out, g, d_abs)
+                wp.atomic_add(grad_conics_out, g, d_conic)
+        k -= 1
 
 
 @wp.kernel(enable_backward=False)
@@ -210,13 +240,14 @@ def complexity_kernel(
     pix = tile_pixel(wp.tid(), tiles_x)
     x = pix[0]
     y = pix[1]
-    if x >= width or y >= height:
-        return
-    hf = float(complexity_map[y, x]) / 255.0
     px = float(x) + 0.5
     py = float(y) + 0.5
     start = tile_ranges[pix[2], 0]
-    last = last_contributor[y, x]
+    hf = float(0.0)
+    last = start - 1  # pixels outside the image take part in the warp's collectives with nothing to add
+    if x < width and y < height:
+        hf = float(complexity_map[y, x]) / 255.0
+        last = last_contributor[y, x]
     w_max = float(1.0e-4)
     transmittance = float(1.0)
     for k in range(start, last + 1):
@@ -226,14 +257,26 @@ def complexity_kernel(
             continue
         w_max = wp.max(w_max, alpha * transmittance)
         transmittance = transmittance * (1.0 - alpha)
+    # Second pass: the warp's lanes walk the list together so that each Gaussian's max, sum and
+    # count are combined in registers and reach global memory once per warp.
     transmittance = float(1.0)
-    for k in range(start, last + 1):
+    warp_last = lane_max_int(last)
+    for k in range(start, warp_last + 1):
         g = sorted_gauss_ids[k]
-        alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
-        if alpha == 0.0:
-            continue
-        value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
-        wp.atomic_max(max_out, g, value)
-        wp.atomic_add(sum_out, g, value)
-        wp.atomic_add(count_out, g, 1)
-        transmittance = transmittance * (1.0 - alpha)
+        alpha = float(0.0)
+        if k <= last:
+            alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
+        value = float(0.0)
+        valid = int(0)
+        if alpha > 0.0:
+            value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
+            valid = 1
+            transmittance = transmittance * (1.0 - alpha)
+        if lane_any(valid) != 0:
+            top = lane_max(value)
+            total = lane_sum(value)
+            count = lane_sum(float(valid))
+            if lane_leads() != 0:
+                wp.atomic_max(max_out, g, top)
+                wp.atomic_add(sum_out, g, total)
+                wp.atomic_add(count_out, g, int(count))
