@@ -24,4 +24,4 @@ train: install
 	$(BIN)/python examples/train_garden.py $(ARGS)
 
 bench: install
-	$(BIN)/python benchmarks/bench_rasterize.py $(ARGS)
+	$(BIN)/python benchmarks/run.py $(ARGS)
