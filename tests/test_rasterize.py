@@ -126,8 +126,8 @@ def test_vjp_matches_reference(device, scene_name, sh_degree, antialiased):
 
 @pytest.mark.parametrize("sh_degree", [1, 2])
 def test_sh_vjp_below_the_stored_degree(device, sh_degree):
-    """Degree-3 coefficients rendered at degree 1 or 2: the written-out SH adjoint matches the
-    reference for every degree, and coefficients above the degree get exactly zero."""
+    """Degree-3 coefficients rendered at degree 1 or 2: the SH adjoint matches the reference at
+    every degree, and coefficients above the degree get exactly zero."""
     n, w, h, seed = SCENES["hard-50"]
     scene = make_scene(n, w, h, sh_degree=3, seed=seed, hard_cases=False)
     (tensors, _, image, _, _), (ref_tensors, _, ref) = _render_both(scene, device, sh_degree=sh_degree, requires_grad=True)
