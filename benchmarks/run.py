@@ -58,7 +58,7 @@ STAGES = [
 def stage_of(kernel: str) -> str:
     """The stage a GPU kernel belongs to, from its name (Warp names adjoints ``*_backward``)."""
     name = kernel.lower()
-    if "cuda_kernel_backward" in name:  # Warp's generated adjoints
+    if "backward" in name:  # Warp's generated adjoints end in _cuda_kernel_backward
         if "sh_to_color" in name:
             return "sh colour backward"
         if "project_gaussians" in name:
