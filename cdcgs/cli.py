@@ -1,4 +1,4 @@
-"""The ``cdcgs`` command: train, eval, render, export, download.
+"""The ``cdcgs`` command: train, eval, render, export, view, download.
 
 Training options are generated from the configuration dataclasses (:mod:`cdcgs.train.config`)
 and the strategies' hyperparameters, so every option has its help line and its default.
@@ -97,6 +97,10 @@ def cmd_train(args) -> int:
         raise SystemExit("cdcgs train: --data DIR is required (a COLMAP folder or one with transforms.json)")
     config = _build_dataclass(TrainConfig, values)
     options = {k[len("strategy__") :]: v for k, v in values.items() if k.startswith("strategy__") and v is not None}
+    if config.view:
+        from .viewer import check_port_free
+
+        check_port_free(config.view_host, config.view_port)  # before the scene loads, not after
     try:
         result = Trainer(config, options).run()
     except TrainingDiverged as err:
@@ -257,6 +261,16 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from .train.trainer import resolve_device
+    from .viewer import Viewer, ViewerSettings, check_port_free, load_viewable, serve
+
+    settings = ViewerSettings(host=args.host, port=args.port, max_fps=args.max_fps, max_height=args.max_height)
+    check_port_free(settings.host, settings.port)  # before a large model loads, not after
+    serve(Viewer(load_viewable(args.path, resolve_device(args.device)), settings))
+    return 0
+
+
 def cmd_download(args) -> int:
     from .datasets.download import download_mipnerf360
 
@@ -304,6 +318,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out_dir", help="output folder of cdcgs train")
     p.add_argument("ply", help="PLY file to write")
     p.set_defaults(func=cmd_export)
+    p = sub.add_parser("view", help="look at a model in the browser (an output folder or any 3DGS PLY)",
+                       description="Serve a browser viewer of a model: colour, depth, alpha and CDC-GS complexity, with the training cameras.")
+    p.add_argument("path", help="output folder of cdcgs train, or a PLY in the 3DGS layout")
+    p.add_argument("--port", type=int, default=8080, help="port to serve on (default: 8080; 0: any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0 lets other machines open it)")
+    p.add_argument("--device", default="auto", help="torch device that renders (default: cuda when there is one)")
+    p.add_argument("--max-fps", type=float, default=30.0, help="frames per second per browser, at most (default: 30)")
+    p.add_argument("--max-height", type=int, default=None, help="frame height cap in pixels (default: 1080 on CUDA, 540 on the CPU)")
+    p.set_defaults(func=cmd_view)
     p = sub.add_parser("compare", help="plot the complexity-density correlation of several runs (CDC-GS Fig. 4b)")
     p.add_argument("out_dirs", nargs="+", help="output folders of cdcgs train")
     p.add_argument("--out", default="correlation.png", help="PNG to write (default: correlation.png)")

@@ -51,6 +51,9 @@ class TrainConfig:
     resume: bool = option(False, "continue the run in --out from its checkpoint.pt")
     overwrite: bool = option(False, "replace a finished or interrupted run already in --out (otherwise refused)")
     progress: bool = option(True, "show a progress bar")
+    view: bool = option(False, "serve a browser viewer of the model while it trains (as cdcgs view; renders only while a browser watches)")
+    view_port: int = option(8080, "port of the --view viewer (0: any free port)")
+    view_host: str = option("127.0.0.1", "address the --view viewer listens on; 0.0.0.0 lets other machines open it")
 
     def __post_init__(self):
         if self.iters <= 0:
@@ -68,6 +71,8 @@ class TrainConfig:
         for name in ("sh_every", "log_every"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive")
+        if not 0 <= self.view_port <= 65535:
+            raise ValueError(f"view_port must be in 0..65535, got {self.view_port}")
         for name in ("eval_every", "checkpoint_every"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be non-negative")

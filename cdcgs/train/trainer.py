@@ -226,6 +226,7 @@ class Trainer:
 
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)
+        viewer = self._open_viewer()
         bar = tqdm(total=config.iters, initial=self.step, disable=not config.progress, unit="it", dynamic_ncols=True)
         smoothed_loss = smoothed_psnr = None
         try:
@@ -233,6 +234,8 @@ class Trainer:
                 start = time.perf_counter()
                 loss_value, psnr_value, strategy_log = self.train_step()
                 self.train_seconds += time.perf_counter() - start
+                if viewer is not None:
+                    viewer.offer(self.model, self.step)
                 smoothed_loss = loss_value if smoothed_loss is None else 0.9 * smoothed_loss + 0.1 * loss_value
                 smoothed_psnr = psnr_value if smoothed_psnr is None else 0.9 * smoothed_psnr + 0.1 * psnr_value
                 if strategy_log:
@@ -259,8 +262,19 @@ class Trainer:
             self.save()
             print(f"interrupted at iteration {self.step}: checkpoint and PLY written to {self.out} (continue with --resume)")
             raise
+        finally:
+            if viewer is not None:
+                viewer.stop()
         bar.close()
         return self.finish()
+
+    def _open_viewer(self):
+        """The browser viewer of ``--view``, started, or None."""
+        if not self.config.view:
+            return None
+        from ..viewer import ViewerSettings, training_viewer
+
+        return training_viewer(self, ViewerSettings(host=self.config.view_host, port=self.config.view_port, max_fps=10.0))
 
     def finish(self) -> dict:
         self.save()
