@@ -29,7 +29,7 @@ from cdcgs.train.trainer import Trainer
 DEVICE = test_devices()[0]
 CHROMIUM_FLAGS = [
     "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+    "--disable-component-update", "--disable-sync", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-dev-shm-usage",
 ]  # fmt: skip
 VIEWPORT = {"width": 800, "height": 600}
 
