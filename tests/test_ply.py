@@ -54,12 +54,16 @@ def test_layout_matches_inria(tmp_path):
     np.testing.assert_array_equal(v["opacity"], model.opacity_logits.numpy())
 
 
-def test_reads_a_file_written_by_plyfile(tmp_path):
-    """A PLY written by another tool in the standard layout opens (here: degree 1, plyfile)."""
+@pytest.mark.parametrize("normals", [True, False])
+def test_reads_a_file_written_by_plyfile(tmp_path, normals):
+    """A PLY written by another tool in the standard layout opens (here: degree 1, plyfile), with
+    the normals 3DGS writes or without them (gsplat's export), fields in another order."""
     from plyfile import PlyData, PlyElement
 
-    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
-    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + ["f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(9)] + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    if not normals:
+        names = names[::-1]
     data = np.zeros(4, dtype=[(n, "f4") for n in names])
     for i, n in enumerate(names):
         data[n] = np.arange(4) + 10 * i
@@ -69,6 +73,17 @@ def test_reads_a_file_written_by_plyfile(tmp_path):
     np.testing.assert_array_equal(model.sh[:, 1, 0].numpy(), data["f_rest_0"])
     np.testing.assert_array_equal(model.sh[:, 1, 1].numpy(), data["f_rest_3"])
     np.testing.assert_array_equal(model.quats[:, 3].numpy(), data["rot_3"])
+    np.testing.assert_array_equal(model.means[:, 1].numpy(), data["y"])
+    np.testing.assert_array_equal(model.opacity_logits.numpy(), data["opacity"])
+
+
+def test_non_finite_values_are_refused(tmp_path):
+    model = random_model()
+    model.log_scales[3, 1] = float("nan")
+    model.means[5, 0] = float("inf")
+    write_ply(tmp_path / "nan.ply", model)
+    with pytest.raises(InputError, match="2 of .* vertices hold NaN or infinite values \\(the first is vertex 3\\)"):
+        read_ply(tmp_path / "nan.ply")
 
 
 @pytest.mark.parametrize(
@@ -77,8 +92,9 @@ def test_reads_a_file_written_by_plyfile(tmp_path):
         (lambda b: b[: len(b) - 7], "truncated"),
         (lambda b: b + b"\0" * 4, "longer than its header"),
         (lambda b: b.replace(b"property float opacity\n", b""), "missing \\['opacity'\\]"),
-        (lambda b: b.replace(b"property float scale_0\n", b"property float scale_9\n"), "missing \\['scale_0'\\] unexpected \\['scale_9'\\]"),
-        (lambda b: b.replace(b"f_rest_44", b"f_rest_XX"), "missing \\['f_rest_44'\\] unexpected \\['f_rest_XX'\\]"),
+        (lambda b: b.replace(b"property float scale_0\n", b"property float scale_9\n"), "missing \\['scale_0'\\]"),
+        (lambda b: b.replace(b"f_rest_44", b"f_rest_XX"), "missing \\['f_rest_44'\\]"),
+        (lambda b: b.replace(b"property float scale_1\n", b"property float scale_0\n"), "names a vertex property twice|missing"),
         (lambda b: b.replace(b"property float f_rest_44\n", b""), "44 f_rest fields"),
         (lambda b: b.replace(b"binary_little_endian", b"ascii"), "format 'ascii'"),
         (lambda b: b.replace(b"element vertex 37", b"element vertex 38"), "truncated"),

@@ -65,7 +65,7 @@ def write_ply(path, model: GaussianPly) -> None:
         cpu(model.means),
         np.zeros((n, 3), np.float32),
         sh[:, 0, :],
-        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1),  # channel-major, as INRIA writes it
+        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),  # channel-major, as INRIA writes it
         cpu(model.opacity_logits)[:, None],
         cpu(model.log_scales),
         cpu(model.quats),
@@ -86,6 +86,9 @@ def write_ply(path, model: GaussianPly) -> None:
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+NORMALS = ("nx", "ny", "nz")  # written by 3DGS (zeros), left out by some tools; never read
 
 
 def _parse_header(path: str, f) -> tuple[int, list[str], int]:
@@ -144,8 +147,9 @@ def read_ply(path, device="cpu") -> GaussianPly:
 
     Raises:
         InputError: the file is missing or unreadable, is not a binary little-endian PLY, lacks a
-            field or has unexpected ones, has a spherical-harmonics count that is not (d+1)^2 - 1
-            per channel, or its body is shorter or longer than the header says.
+            field of the layout (fields are found by name; extra float fields such as normals are
+            ignored), has a spherical-harmonics count that is not (d+1)^2 - 1 per channel, its
+            body is shorter or longer than the header says, or a value is NaN or infinite.
     """
     path = os.fspath(path)
     try:
@@ -158,17 +162,24 @@ def read_ply(path, device="cpu") -> GaussianPly:
         if num_rest % 3 != 0 or math.isqrt(num_rest // 3 + 1) ** 2 != num_rest // 3 + 1 or num_rest > 45:
             raise InputError(path, f"{num_rest} f_rest fields: expected 3 x ((degree+1)^2 - 1) for degree 0..3")
         expected = _property_names(num_rest)
-        if names != expected:
-            missing = [n for n in expected if n not in names]
-            extra = [n for n in names if n not in expected]
-            detail = (f"missing {missing}" if missing else "") + (f" unexpected {extra}" if extra else "")
-            raise InputError(path, f"vertex properties are not the 3DGS layout: {detail.strip() or 'wrong order'}")
+        missing = [n for n in expected if n not in names and n not in NORMALS]
+        if missing:
+            raise InputError(path, f"vertex properties are not the 3DGS layout: missing {missing}")
+        if len(set(names)) != len(names):
+            raise InputError(path, "the PLY header names a vertex property twice")
         row = 4 * len(names)
         body = f.read()
     if len(body) != count * row:
         what = "truncated" if len(body) < count * row else "longer than its header says"
         raise InputError(path, f"the body is {what}: {len(body)} bytes for {count} vertices of {row} bytes")
-    data = np.frombuffer(body, dtype="<f4").reshape(count, len(names))
+    # Fields are found by name, so other tools' orders and extra fields (normals nx ny nz, which
+    # gsplat and SuperSplat may leave out or add) are fine.
+    table = np.frombuffer(body, dtype="<f4").reshape(count, len(names))
+    zeros = np.zeros(count, np.float32)
+    data = np.stack([table[:, names.index(n)] if n in names else zeros for n in expected], axis=1)
+    bad = ~np.isfinite(data).all(axis=1)
+    if bad.any():
+        raise InputError(path, f"{int(bad.sum())} of {count} vertices hold NaN or infinite values (the first is vertex {int(np.argmax(bad))})")
     k = num_rest // 3 + 1
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
     sh = np.empty((count, k, 3), np.float32)
