@@ -1,6 +1,7 @@
 """Sharing torch tensors with Warp: zero-copy arrays, the right device and stream."""
 
 import contextlib
+import threading
 
 import torch
 import warp as wp
@@ -18,11 +19,21 @@ def wp_array(tensor: torch.Tensor, dtype) -> wp.array:
 
 
 _streams: dict = {}
+# Warp's default device and each device's current stream are process-wide; two threads (a training
+# and its viewer) entering and leaving scopes in an interleaved order could leave either launching
+# on the other's stream. One scope at a time; re-entrant for nested scopes in one thread.
+_scope_lock = threading.RLock()
 
 
 @contextlib.contextmanager
 def warp_scope(device: torch.device):
-    """Run Warp on the tensors' device and, on CUDA, on torch's current stream."""
+    """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe)."""
+    with _scope_lock, _scoped(device) as warp_device:
+        yield warp_device
+
+
+@contextlib.contextmanager
+def _scoped(device: torch.device):
     if device.type == "cuda":
         torch_stream = torch.cuda.current_stream(device)
         key = (device.index, torch_stream.cuda_stream)

@@ -322,6 +322,7 @@ def load_viewable(path, device) -> Viewable:
         raise InputError(path, "no such file or folder (give a cdcgs output folder or a 3DGS .ply file)")
     if os.path.isfile(path):
         model = GaussianModel.from_ply(read_ply(path), device=device)
+        _check_model(model, path)
         reason = "a PLY file holds no training images, which Γ is measured against; open the run's output folder instead"
         return Viewable(Snapshot.of(model), os.path.basename(path), [], Complexity(unavailable=reason))
     config_path = os.path.join(path, "config.json")
@@ -340,6 +341,7 @@ def load_viewable(path, device) -> Viewable:
         model = GaussianModel.from_state_dict(load_checkpoint(checkpoint_path)["model"], device=device)
     else:
         raise InputError(path, "holds no model yet (no point_cloud.ply or checkpoint.pt); to watch a training, run it with --view")
+    _check_model(model, ply_path if os.path.isfile(ply_path) else checkpoint_path)
     d = config.data
     notes, views = [], []
     try:
@@ -353,6 +355,14 @@ def load_viewable(path, device) -> Viewable:
     background = (1.0, 1.0, 1.0) if config.background == "white" else (0.0, 0.0, 0.0)
     title = os.path.basename(os.path.normpath(path))
     return Viewable(Snapshot.of(model), title, views, complexity, background, config.antialiased, notes)
+
+
+def _check_model(model, path: str) -> None:
+    if model.num == 0:
+        raise InputError(path, "holds no Gaussians: there is nothing to show")
+    for name, value in model.params.items():
+        if not torch.isfinite(value).all():
+            raise InputError(path, f"the model's {name} hold NaN or infinite values")
 
 
 # --------------------------------------------------------------------------------------------
@@ -389,14 +399,14 @@ def check_port_free(host: str, port: int) -> None:
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as err:
-        raise ValueError(f"--host {host!r} is not an address of this machine ({err.strerror})") from None
+        raise ValueError(f"host {host!r} is not an address of this machine ({err.strerror})") from None
     family, kind, proto, _, address = infos[0]
     with socket.socket(family, kind, proto) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds
         try:
             probe.bind(address)
         except OSError as err:
-            raise ValueError(f"cannot listen on {host}:{port}: {err.strerror}; choose another port with --port (0 picks a free one)") from None
+            raise ValueError(f"cannot listen on {host}:{port}: {err.strerror}; choose another port (0 picks a free one)") from None
 
 
 class Viewer:
@@ -433,6 +443,7 @@ class Viewer:
         self._server = None
         self._thread = None
         self._mode_note = None
+        self._offer_failed = False
 
     # ---------------------------------------------------------------------------- lifecycle
 
@@ -445,13 +456,18 @@ class Viewer:
         server = viser.ViserServer(host=s.host, port=s.port, label=f"cdcgs · {self.viewable.title}", verbose=False)
         if s.port and server.get_port() != s.port:
             server.stop()
-            raise ValueError(f"cannot listen on {s.host}:{s.port}: the port was taken; choose another with --port")
+            raise ValueError(f"cannot listen on {s.host}:{s.port}: the port was taken; choose another port")
         self._server = server
-        server.scene.world_axes.visible = False
-        self._build_gui(server)
-        self._add_cameras(server)
-        server.on_client_connect(self._on_connect)
-        server.on_client_disconnect(self._on_disconnect)
+        try:
+            server.scene.world_axes.visible = False
+            self._build_gui(server)
+            self._add_cameras(server)
+            server.on_client_connect(self._on_connect)
+            server.on_client_disconnect(self._on_disconnect)
+        except BaseException:
+            server.stop()
+            self._server = None
+            raise
         self._thread = threading.Thread(target=self._loop, name="cdcgs-viewer", daemon=True)
         self._thread.start()
         shown = socket.gethostname() if s.host in ("0.0.0.0", "::", "") else s.host
@@ -470,9 +486,17 @@ class Viewer:
     def offer(self, model, step: int) -> None:
         """Called by a training after each step: takes a :class:`Snapshot` of ``model`` when one
         is due (see :class:`LiveModel`). Cheap otherwise."""
+        if self._offer_failed:
+            return
         now = time.monotonic()
         if self.model.due(now, self._watched, sum(self._frame_seconds.values())):
-            snapshot = Snapshot.of(model, step)
+            try:
+                snapshot = Snapshot.of(model, step)
+            except Exception:  # e.g. out of memory for the copy: the training matters more than the view
+                self._offer_failed = True
+                log.exception("viewer: could not copy the model at step %d; the viewer keeps the last copy and training goes on", step)
+                self._say("The training's model could no longer be copied (see the terminal); this is the last copy.")
+                return
             with self._lock:
                 self.model.replace(snapshot, now)
             self._wake.set()
@@ -666,7 +690,12 @@ class Viewer:
         now = time.monotonic()
         if self._gamma is None or (self._gamma[0] != self.model.version and now - self._gamma_at > 10.0):
             self._say(f"Computing Γ over {len(self.viewable.complexity.views)} training views…")
-            gamma = self.viewable.complexity.compute(snapshot, self.viewable.antialiased)
+            try:
+                gamma = self.viewable.complexity.compute(snapshot, self.viewable.antialiased)
+            except Exception as err:
+                self.viewable.complexity = Complexity(unavailable=f"computing Γ failed: {err}")
+                self._say(f"Complexity is not available: computing Γ failed ({err}); see the terminal.")
+                raise
             self._gamma, self._gamma_at = (self.model.version, gamma, snapshot), time.monotonic()
             self._say(self._mode_text("complexity"))
         return self._gamma[2], self._gamma[1]

@@ -267,6 +267,10 @@ def bad_inputs(tmp_path, tiny_run):
     write_ply(tmp_path / "whole.ply", GaussianPly(torch.zeros(n, 3), torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n), torch.zeros(n, 1, 3)))
     data = (tmp_path / "whole.ply").read_bytes()
     (tmp_path / "truncated.ply").write_bytes(data[:-20])
+    write_ply(tmp_path / "empty.ply", GaussianPly(torch.zeros(0, 3), torch.zeros(0, 3), torch.ones(0, 4), torch.zeros(0), torch.zeros(0, 1, 3)))
+    nan_means = torch.zeros(n, 3)
+    nan_means[4, 1] = float("nan")
+    write_ply(tmp_path / "nan.ply", GaussianPly(nan_means, torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n), torch.zeros(n, 1, 3)))
     (tmp_path / "folder").mkdir()
     (tmp_path / "unfinished").mkdir()
     shutil.copy(tiny_run / "config.json", tmp_path / "unfinished")
@@ -274,6 +278,8 @@ def bad_inputs(tmp_path, tiny_run):
         "missing.ply": "no such file or folder",
         "notes.ply": "not a PLY file",
         "truncated.ply": "the body is truncated",
+        "empty.ply": "holds no Gaussians",
+        "nan.ply": "NaN or infinite values",
         "folder": "not a cdcgs output folder",
         "unfinished": "holds no model yet",
     }
@@ -309,7 +315,7 @@ def test_port_in_use_is_refused_by_name(tmp_path, tiny_run, capsys):
         port = taken.getsockname()[1]
         assert cli_main(["view", str(tiny_run), "--port", str(port)]) == 2
         message = capsys.readouterr().err
-        assert f"cannot listen on 127.0.0.1:{port}" in message and "--port" in message
+        assert f"cannot listen on 127.0.0.1:{port}" in message and "choose another port" in message
 
 
 def test_training_hands_snapshots_to_its_viewer(tiny_run, tmp_path, monkeypatch):
