@@ -1,0 +1,79 @@
+"""The benchmark suite runs end to end (on the CPU, tiny sizes) and sorts kernels into stages."""
+
+import json
+import os
+import sys
+
+import pytest
+
+from cdcgs.datasets.procedural import make_procedural_scene
+from cdcgs.train import DataConfig, TrainConfig, Trainer
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+import run as suite  # noqa: E402
+
+WORKLOAD = '''
+import math, torch
+
+def make_scene(n, device="cpu"):
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(n, 3, generator=g) * 0.5 + torch.tensor([0.0, 0.0, 4.0])
+    K = torch.tensor([[40.0, 0, 24.0], [0, 40.0, 18.0], [0, 0, 1]])
+    return {
+        "means": means.to(device), "quats": torch.randn(n, 4, generator=g).to(device),
+        "scales": (torch.rand(n, 3, generator=g) * 0.05 + 0.01).to(device),
+        "opacities": torch.rand(n, generator=g).to(device), "sh": (torch.randn(n, 16, 3, generator=g) * 0.3).to(device),
+        "viewmat": torch.eye(4).to(device), "K": K.to(device), "width": 48, "height": 36, "sh_degree": 3,
+    }
+'''
+
+
+@pytest.mark.parametrize(
+    "kernel,stage",
+    [
+        ("project_gaussians_kernel_3c72d62f_cuda_kernel_forward", "projection"),
+        ("project_gaussians_kernel_3c72d62f_cuda_kernel_backward", "projection backward"),
+        ("sh_to_color_kernel_4c707bbf_cuda_kernel_forward", "sh colour"),
+        ("sh_to_color_kernel_4c707bbf_cuda_kernel_backward", "sh colour backward"),
+        ("emit_keys_kernel_1a2b_cuda_kernel_forward", "binning + sort"),
+        ("void cub::DeviceRadixSortOnesweepKernel<cub::DeviceRadixSortPolicy>", "binning + sort"),
+        ("blend_forward_kernel_66825d96_cuda_kernel_forward", "blend forward"),
+        ("blend_backward_kernel_30912936_cuda_kernel_forward", "blend backward"),
+        ("void gsplat::projection_ewa_3dgs_fused_fwd_kernel<float>(...)", "projection"),
+        ("void gsplat::projection_ewa_3dgs_fused_bwd_kernel<float>(...)", "projection backward"),
+        ("void gsplat::spherical_harmonics_bwd_kernel<float>(...)", "sh colour backward"),
+        ("void gsplat::intersect_tile_kernel<float>(...)", "binning + sort"),
+        ("void gsplat::rasterize_to_pixels_3dgs_fwd_kernel<3u, float>(...)", "blend forward"),
+        ("void gsplat::rasterize_to_pixels_3dgs_bwd_kernel<3u, float>(...)", "blend backward"),
+        ("void at::native::vectorized_elementwise_kernel<4, at::native::FillFunctor<float>>", "other (torch)"),
+    ],
+)
+def test_kernels_sort_into_stages(kernel, stage):
+    assert suite.stage_of(kernel) == stage
+
+
+def test_suite_runs_and_writes_one_json(tmp_path, capsys):
+    workload = tmp_path / "workload.py"
+    workload.write_text(WORKLOAD)
+    scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
+    run_dir = tmp_path / "run"
+    config = TrainConfig(data=DataConfig(data=scene), out=str(run_dir), iters=10, device="cpu",
+                         eval_every=0, checkpoint_every=0, progress=False, save_renders=False)  # fmt: skip
+    Trainer(config, {"densify_from": 10**6}).run()
+    out = tmp_path / "suite.json"
+    suite.main([
+        "--device", "cpu", "--sections", "raster", "knn", "complexity", "training", "--sizes", "300",
+        "--knn-sizes", "2000", "--iters", "2", "--warmup", "1", "--workload", str(workload),
+        "--training-run", str(run_dir), "--peer-training", os.path.join(ROOT, "benchmarks", "peers", "gsplat_bonsai.json"),
+        "--out", str(out),
+    ])  # fmt: skip
+    report = json.loads(out.read_text())
+    sections = [row["section"] for row in report["rows"]]
+    assert {"raster", "knn", "complexity", "training"} <= set(sections)
+    raster = next(r for r in report["rows"] if r["section"] == "raster")
+    assert raster["n"] == 300 and raster["forward_ms"] > 0 and raster["forward_backward_ms"] > 0 and raster["intersections"] > 0
+    training = [r for r in report["rows"] if r["section"] == "training"]
+    assert training[0]["iterations"] == 10 and training[1]["psnr"] == 31.41
+    printed = capsys.readouterr().out
+    assert "## cdcgs benchmark suite on cpu" in printed and "| training run |" in printed
