@@ -233,8 +233,9 @@ def complexity_kernel(
     composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
 
     Two passes over each pixel's list, in compositing order up to its last contributor (the same
-    alpha and transmittance rules as the forward blend): the first finds w_max, the second adds
-    every contribution with an exact atomic max (and atomic sums for the mean aggregation).
+    alpha and transmittance rules as the forward blend): the first finds w_max, the second combines
+    the warp's contributions per Gaussian in registers (max, sum, count) and adds them with an
+    exact atomic max and atomic sums (the sums serve the mean aggregation).
     ``complexity_map`` holds HF in [0, 1] as uint8 (x 255).
     """
     pix = tile_pixel(wp.tid(), tiles_x)
