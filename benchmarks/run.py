@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 
@@ -40,7 +39,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 import bench_rasterize  # noqa: E402
-from bench_knn import make_points  # noqa: E402
+from bench_knn import make_points, time_cdcgs  # noqa: E402
 
 import cdcgs  # noqa: E402
 
@@ -141,15 +140,11 @@ def _forward_backward(render, leaves):
 
 
 def section_knn(args, device, report):
-    from cdcgs.neighbors import knn
-
     sets = [(f"clustered {n // 1000}k", torch.from_numpy(make_points("clustered", n))) for n in args.knn_sizes]
     if args.scene:
         sets.insert(0, (f"{os.path.basename(os.path.normpath(args.scene))} points3D", _scene_points(args.scene)))
     for label, points in sets:
-        on_device = points.to(device)
-        knn(on_device, 3)
-        ms = _wall_ms(lambda: knn(on_device, 3), device, args.iters)
+        ms, _ = time_cdcgs(points.to(device), 3, args.iters)
         row = {"section": "knn", "points": label, "n": points.shape[0], "cdcgs_ms": ms}
         try:
             from sklearn.neighbors import NearestNeighbors
@@ -171,19 +166,6 @@ def _scene_points(path: str) -> torch.Tensor:
 
     reconstruction = read_reconstruction(find_model_dir(path))
     return torch.from_numpy(np.array([p.xyz for p in reconstruction.points3D.values()], dtype=np.float32))
-
-
-def _wall_ms(fn, device, iters: int) -> float:
-    times = []
-    for _ in range(iters):
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
 
 
 def section_complexity(args, device, workload, report):
