@@ -17,7 +17,7 @@ from .interop import warp_scope as _warp_scope
 from .interop import wp_array as _wp
 from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
 from .kernels.blend import blend_backward_kernel, blend_forward_kernel
-from .kernels.projection import Camera, make_camera, project_gaussians_kernel, sh_to_color_kernel
+from .kernels.projection import Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_kernel
 
 __all__ = ["RasterizeInfo", "rasterize"]
 
@@ -156,25 +156,22 @@ class _ShColor(torch.autograd.Function):
                 inputs=[_wp(means, wp.vec3), _wp(sh, wp.vec3), sh_degree, camera_center],
                 outputs=[_wp(colors, wp.vec3)],
             )
-        ctx.save_for_backward(means, sh, colors)
+        ctx.save_for_backward(means, sh)
         ctx.sh_degree = sh_degree
         ctx.camera_center = camera_center
         return colors
 
     @staticmethod
     def backward(ctx, grad_colors):
-        means, sh, colors = ctx.saved_tensors
-        grad_means = torch.zeros_like(means)
-        grad_sh = torch.zeros_like(sh)
+        means, sh = ctx.saved_tensors
+        grad_means = torch.empty_like(means)
+        grad_sh = torch.empty_like(sh)
         with _warp_scope(means.device):
             wp.launch(
-                sh_to_color_kernel,
+                sh_to_color_backward_kernel,
                 means.shape[0],
-                inputs=[_wp(means, wp.vec3), _wp(sh, wp.vec3), ctx.sh_degree, ctx.camera_center],
-                outputs=[_wp(colors, wp.vec3)],
-                adj_inputs=[_wp(grad_means, wp.vec3), _wp(grad_sh, wp.vec3), 0, wp.vec3()],
-                adj_outputs=[_wp(grad_colors.contiguous(), wp.vec3)],
-                adjoint=True,
+                inputs=[_wp(means, wp.vec3), _wp(sh, wp.vec3), ctx.sh_degree, ctx.camera_center, _wp(grad_colors.contiguous(), wp.vec3)],
+                outputs=[_wp(grad_means, wp.vec3), _wp(grad_sh, wp.vec3)],
             )
         return grad_means, grad_sh, None, None
 

@@ -3,8 +3,10 @@
 Pure Warp. Conventions: world-to-camera matrices, camera x right, y down, z forward (COLMAP);
 quaternions (w, x, y, z); pixel coordinates continuous with pixel (i, j) centred at (i + 0.5, j + 0.5).
 
-Both kernels are per-Gaussian maps, so their backward passes are Warp's generated adjoints
-(launch with ``adjoint=True``); tests check them against a float64 reference.
+The projection's backward pass is Warp's generated adjoint (launch with ``adjoint=True``); the SH
+colour's is written out (``sh_to_color_backward_kernel``: plain stores instead of the generated
+adjoint's atomics; ``sh_to_color_kernel``'s generated adjoint stays exact for ``wp.Tape`` users).
+Tests check both against a float64 reference.
 """
 
 import warp as wp
@@ -206,3 +208,118 @@ def sh_to_color_kernel(
                 )
     color = color + wp.vec3(0.5, 0.5, 0.5)
     colors_out[i] = wp.vec3(wp.max(color[0], 0.0), wp.max(color[1], 0.0), wp.max(color[2], 0.0))
+
+
+vec16 = wp.types.vector(length=16, dtype=wp.float32)
+
+
+@wp.func
+def sh_basis(d: wp.vec3, degree: int):
+    """The 16 real SH basis functions (3DGS signs) at unit direction ``d``; 0 above ``degree``."""
+    x = d[0]
+    y = d[1]
+    z = d[2]
+    xx = x * x
+    yy = y * y
+    zz = z * z
+    m1 = wp.where(degree > 0, 1.0, 0.0)
+    m2 = wp.where(degree > 1, 1.0, 0.0)
+    m3 = wp.where(degree > 2, 1.0, 0.0)
+    return vec16(
+        SH_C0,
+        -m1 * SH_C1 * y,
+        m1 * SH_C1 * z,
+        -m1 * SH_C1 * x,
+        m2 * 1.0925484305920792 * x * y,
+        -m2 * 1.0925484305920792 * y * z,
+        m2 * 0.31539156525252005 * (2.0 * zz - xx - yy),
+        -m2 * 1.0925484305920792 * x * z,
+        m2 * 0.5462742152960396 * (xx - yy),
+        -m3 * 0.5900435899266435 * y * (3.0 * xx - yy),
+        m3 * 2.890611442640554 * x * y * z,
+        -m3 * 0.4570457994644658 * y * (4.0 * zz - xx - yy),
+        m3 * 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+        -m3 * 0.4570457994644658 * x * (4.0 * zz - xx - yy),
+        m3 * 1.445305721320277 * z * (xx - yy),
+        -m3 * 0.5900435899266435 * x * (xx - 3.0 * yy),
+    )
+
+
+@wp.func
+def sh_basis_vjp(d: wp.vec3, w: vec16, degree: int):
+    """sum_j w[j] * d(basis_j)/d(d), the basis differentiated in x, y, z as independent variables."""
+    x = d[0]
+    y = d[1]
+    z = d[2]
+    g = wp.vec3(-SH_C1 * w[3], -SH_C1 * w[1], SH_C1 * w[2])
+    if degree > 1:
+        c20 = 1.0925484305920792
+        c22 = 0.31539156525252005
+        c24 = 0.5462742152960396
+        g += wp.vec3(
+            c20 * (y * w[4] - z * w[7]) + 2.0 * x * (c24 * w[8] - c22 * w[6]),
+            c20 * (x * w[4] - z * w[5]) - 2.0 * y * (c22 * w[6] + c24 * w[8]),
+            -c20 * (y * w[5] + x * w[7]) + 4.0 * c22 * z * w[6],
+        )
+        if degree > 2:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            c30 = 0.5900435899266435
+            c31 = 2.890611442640554
+            c32 = 0.4570457994644658
+            c33 = 0.3731763325901154
+            c35 = 1.445305721320277
+            g += wp.vec3(
+                -6.0 * c30 * x * y * w[9] + c31 * y * z * w[10] + 2.0 * c32 * x * y * w[11] - 6.0 * c33 * x * z * w[12]
+                - c32 * (4.0 * zz - 3.0 * xx - yy) * w[13] + 2.0 * c35 * x * z * w[14] - 3.0 * c30 * (xx - yy) * w[15],
+                -3.0 * c30 * (xx - yy) * w[9] + c31 * x * z * w[10] - c32 * (4.0 * zz - xx - 3.0 * yy) * w[11]
+                - 6.0 * c33 * y * z * w[12] + 2.0 * c32 * x * y * w[13] - 2.0 * c35 * y * z * w[14] + 6.0 * c30 * x * y * w[15],
+                c31 * x * y * w[10] - 8.0 * c32 * y * z * w[11] + 3.0 * c33 * (2.0 * zz - xx - yy) * w[12]
+                - 8.0 * c32 * x * z * w[13] + c35 * (xx - yy) * w[14],
+            )  # fmt: skip
+    return g
+
+
+@wp.kernel(enable_backward=False)
+def sh_to_color_backward_kernel(
+    gauss_means: wp.array(dtype=wp.vec3),
+    gauss_sh: wp.array2d(dtype=wp.vec3),
+    sh_degree: int,
+    camera_center: wp.vec3,
+    grad_colors: wp.array(dtype=wp.vec3),
+    grad_means_out: wp.array(dtype=wp.vec3),
+    grad_sh_out: wp.array2d(dtype=wp.vec3),
+):
+    """Adjoint of ``sh_to_color_kernel``, written out: each thread owns its Gaussian's gradients, so
+    they are plain stores (every entry written, coefficients above the degree get 0), no atomics."""
+    i = wp.tid()
+    v = gauss_means[i] - camera_center
+    d = wp.normalize(v)
+    basis = sh_basis(d, sh_degree)
+    count = (sh_degree + 1) * (sh_degree + 1)
+    raw = wp.vec3(0.5, 0.5, 0.5)
+    # Loops over a constant 16 are unrolled, so every vector index is a constant and the vectors
+    # stay in registers (runtime bounds put them in local memory, three times slower).
+    for j in range(16):
+        if j < count:
+            raw += basis[j] * gauss_sh[i, j]
+    g = grad_colors[i]
+    # colour = max(raw, 0) per channel: the gradient passes where raw > 0
+    g = wp.vec3(wp.where(raw[0] > 0.0, g[0], 0.0), wp.where(raw[1] > 0.0, g[1], 0.0), wp.where(raw[2] > 0.0, g[2], 0.0))
+    w = vec16()
+    stored = gauss_sh.shape[1]
+    for j in range(16):
+        if j < count:
+            grad_sh_out[i, j] = basis[j] * g
+            w[j] = wp.dot(gauss_sh[i, j], g)
+        elif j < stored:
+            grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
+    for j in range(16, stored):
+        grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
+    grad_mean = wp.vec3(0.0, 0.0, 0.0)
+    if sh_degree > 0:
+        grad_d = sh_basis_vjp(d, w, sh_degree)
+        # d = v / |v|: the Jacobian is (I - d d^T) / |v|
+        grad_mean = (grad_d - d * wp.dot(d, grad_d)) / wp.length(v)
+    grad_means_out[i] = grad_mean
