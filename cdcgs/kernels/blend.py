@@ -7,7 +7,10 @@ stored, recovering transmittance by division, and accumulates per-Gaussian gradi
 
 import warp as wp
 
-from .lanes import lane_any, lane_leads, lane_max, lane_max_int, lane_sum, lane_sum_vec2, lane_sum_vec3
+from .lanes import (
+    CACHE_COUNT, CACHE_LOAD, CACHE_STORE, CACHE_SYNC, lane_any, lane_leads, lane_max, lane_max_int, lane_sum,
+    lane_sum_vec2, lane_sum_vec3, on_cuda, tile_cache,
+)
 from .projection import ALPHA_THRESHOLD
 
 # Alpha is clamped here so that one Gaussian never makes a pixel fully opaque (3DGS).
@@ -59,39 +62,89 @@ def blend_forward_kernel(
     depth_out: wp.array2d(dtype=float),
     last_contributor_out: wp.array2d(dtype=wp.int32),
 ):
-    """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel."""
-    pix = tile_pixel(wp.tid(), tiles_x)
+    """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel.
+
+    On CUDA the block's 256 threads (one tile) load each next batch of 256 of the tile's Gaussians
+    into shared memory together, one Gaussian per thread, and every pixel then reads the batch from
+    there; the block stops when all its pixels are opaque. On the CPU each pixel reads global memory.
+    """
+    tid = wp.tid()
+    pix = tile_pixel(tid, tiles_x)
+    local = tid % 256
     x = pix[0]
     y = pix[1]
-    if x >= width or y >= height:
-        return
     px = float(x) + 0.5
     py = float(y) + 0.5
     start = tile_ranges[pix[2], 0]
     end = tile_ranges[pix[2], 1]
+    staged = on_cuda()
+    done = int(0)
+    if x >= width or y >= height:
+        done = 1  # pixels outside the image only help load batches
 
     transmittance = float(1.0)
     color = wp.vec3(0.0, 0.0, 0.0)
     depth = float(0.0)
     last = start - 1
     for k in range(start, end):
-        g = sorted_gauss_ids[k]
-        alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
-        if alpha == 0.0:
-            continue
-        next_transmittance = transmittance * (1.0 - alpha)
-        if next_transmittance < MIN_TRANSMITTANCE:
+        j = (k - start) % 256
+        if staged != 0 and j == 0:
+            if tile_cache(CACHE_COUNT, 0, float(done)) >= 256.0:
+                break
+            if k + local < end:
+                gl = sorted_gauss_ids[k + local]
+                m = means2d[gl]
+                q = conics[gl]
+                c = colors[gl]
+                tile_cache(CACHE_STORE, local, m[0])
+                tile_cache(CACHE_STORE, 256 + local, m[1])
+                tile_cache(CACHE_STORE, 512 + local, q[0])
+                tile_cache(CACHE_STORE, 768 + local, q[1])
+                tile_cache(CACHE_STORE, 1024 + local, q[2])
+                tile_cache(CACHE_STORE, 1280 + local, opacities[gl])
+                tile_cache(CACHE_STORE, 1536 + local, c[0])
+                tile_cache(CACHE_STORE, 1792 + local, c[1])
+                tile_cache(CACHE_STORE, 2048 + local, c[2])
+                tile_cache(CACHE_STORE, 2304 + local, depths[gl])
+            tile_cache(CACHE_SYNC, 0, 0.0)
+        if done == 0:
+            g = int(0)
+            if staged != 0:
+                mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
+                conic = wp.vec3(tile_cache(CACHE_LOAD, 512 + j, 0.0), tile_cache(CACHE_LOAD, 768 + j, 0.0), tile_cache(CACHE_LOAD, 1024 + j, 0.0))
+                opacity = tile_cache(CACHE_LOAD, 1280 + j, 0.0)
+            else:
+                g = sorted_gauss_ids[k]
+                mean = means2d[g]
+                conic = conics[g]
+                opacity = opacities[g]
+            alpha = splat_alpha(mean, conic, opacity, px, py)
+            if alpha > 0.0:
+                next_transmittance = transmittance * (1.0 - alpha)
+                if next_transmittance < MIN_TRANSMITTANCE:
+                    done = 1
+                else:
+                    if staged != 0:
+                        gauss_color = wp.vec3(tile_cache(CACHE_LOAD, 1536 + j, 0.0), tile_cache(CACHE_LOAD, 1792 + j, 0.0), tile_cache(CACHE_LOAD, 2048 + j, 0.0))
+                        z = tile_cache(CACHE_LOAD, 2304 + j, 0.0)
+                    else:
+                        gauss_color = colors[g]
+                        z = depths[g]
+                    weight = alpha * transmittance
+                    color += weight * gauss_color
+                    depth += weight * z
+                    transmittance = next_transmittance
+                    last = k
+        if staged == 0 and done != 0:
             break
-        weight = alpha * transmittance
-        color += weight * colors[g]
-        depth += weight * depths[g]
-        transmittance = next_transmittance
-        last = k
+        if staged != 0 and (j == 255 or k == end - 1):
+            tile_cache(CACHE_SYNC, 0, 0.0)  # the batch is read before the next one overwrites it
 
-    image_out[y, x] = color + transmittance * background[0]
-    transmittance_out[y, x] = transmittance
-    depth_out[y, x] = depth
-    last_contributor_out[y, x] = last
+    if x < width and y < height:
+        image_out[y, x] = color + transmittance * background[0]
+        transmittance_out[y, x] = transmittance
+        depth_out[y, x] = depth
+        last_contributor_out[y, x] = last
 
 
 @wp.kernel(enable_backward=False)

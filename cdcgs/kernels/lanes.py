@@ -73,3 +73,48 @@ def lane_sum_vec2(v: wp.vec2):
 @wp.func
 def lane_sum_vec3(v: wp.vec3):
     return wp.vec3(lane_sum(v[0]), lane_sum(v[1]), lane_sum(v[2]))
+
+
+# ------------------------------------------------------------------------------------------------
+# The block of 256 threads that renders one tile: a cache of the tile's next 256 Gaussians.
+
+CACHE_FIELDS = 10  # mean x, y; conic a, b, c; opacity; colour r, g, b; depth
+CACHE_STORE = wp.constant(0)
+CACHE_LOAD = wp.constant(1)
+CACHE_SYNC = wp.constant(2)
+CACHE_COUNT = wp.constant(3)
+
+
+@wp.func_native(
+    f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ float cache[256 * {CACHE_FIELDS}];
+    if (op == 0) {{ cache[slot] = value; return 0.0f; }}
+    if (op == 1) return cache[slot];
+    if (op == 2) {{ __syncthreads(); return 0.0f; }}
+    return (float)__syncthreads_count(value != 0.0f);
+#else
+    return 0.0f;
+#endif
+"""
+)
+def tile_cache(op: int, slot: int, value: float) -> float:
+    """One shared-memory array per block, on CUDA only: CACHE_STORE ``value`` at ``slot``,
+    CACHE_LOAD ``slot``, CACHE_SYNC (a barrier), or CACHE_COUNT: a barrier that returns how many of
+    the block's threads passed a non-zero ``value``. Every thread of the block must reach the same
+    SYNC and COUNT calls. Unused on the CPU (``on_cuda`` is 0 there)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return 1;
+#else
+    return 0;
+#endif
+"""
+)
+def on_cuda() -> int:
+    """1 in CUDA code, 0 in CPU code: chooses between block-cooperative and per-thread paths."""
+    ...
