@@ -8,8 +8,8 @@ stored, recovering transmittance by division, and accumulates per-Gaussian gradi
 import warp as wp
 
 from .lanes import (
-    CACHE_COUNT, CACHE_LOAD, CACHE_STORE, CACHE_SYNC, lane_any, lane_leads, lane_max, lane_max_int, lane_sum,
-    lane_sum_vec2, lane_sum_vec3, on_cuda, tile_cache,
+    CACHE_COUNT, CACHE_LOAD, CACHE_STORE, CACHE_SYNC, block_max_int, lane_any, lane_leads, lane_max, lane_max_int,
+    lane_sum, lane_sum_vec2, lane_sum_vec3, on_cuda, tile_cache, tile_ids,
 )
 from .projection import ALPHA_THRESHOLD
 
@@ -182,7 +182,9 @@ def blend_backward_kernel(
     touch adds zeros. Each Gaussian's gradients are summed over the warp in registers and one lane
     adds them to global memory (``lanes``), so no lane may leave the loop early.
     """
-    pix = tile_pixel(wp.tid(), tiles_x)
+    tid = wp.tid()
+    pix = tile_pixel(tid, tiles_x)
+    local = tid % 256
     x = pix[0]
     y = pix[1]
     px = float(x) + 0.5
@@ -209,60 +211,98 @@ def blend_backward_kernel(
     prev_alpha = float(0.0)
     prev_color = wp.vec3(0.0, 0.0, 0.0)
     prev_depth = float(0.0)
-    k = lane_max_int(last)
+    # On CUDA the block walks its tile's list back to front from the last contributor of any of its
+    # pixels, loading each batch of 256 Gaussians into shared memory together; a warp skips the
+    # Gaussians behind all of its pixels. On the CPU every thread starts at its own last contributor.
+    staged = on_cuda()
+    warp_last = lane_max_int(last)
+    top = block_max_int(warp_last)
+    k = top
     while k >= start:
-        g = sorted_gauss_ids[k]
-        mean = means2d[g]
-        conic = conics[g]
-        opacity = opacities[g]
-        dx = mean[0] - px
-        dy = mean[1] - py
-        power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
-        gauss = wp.exp(wp.min(power, 0.0))
-        raw_alpha = opacity * gauss
-        alpha = wp.min(MAX_ALPHA, raw_alpha)
-        valid = int(0)
-        if k <= last and power <= 0.0 and alpha >= ALPHA_THRESHOLD:
-            valid = 1
-        d_color = wp.vec3(0.0, 0.0, 0.0)
-        d_depth = float(0.0)
-        d_opacity = float(0.0)
-        d_mean = wp.vec2(0.0, 0.0)
-        d_conic = wp.vec3(0.0, 0.0, 0.0)
-        if valid != 0:
-            t = t / (1.0 - alpha)
-            behind_color = prev_alpha * prev_color + (1.0 - prev_alpha) * behind_color
-            behind_depth = prev_alpha * prev_depth + (1.0 - prev_alpha) * behind_depth
-            c = colors[g]
-            z = depths[g]
-            weight = alpha * t
-            d_color = weight * g_color
-            d_depth = weight * g_depth
-            grad_alpha_i = t * (wp.dot(c - behind_color, g_color) + (z - behind_depth) * g_depth)
-            grad_alpha_i += final_transmittance / (1.0 - alpha) * g_final
-            prev_alpha = alpha
-            prev_color = c
-            prev_depth = z
-            if raw_alpha < MAX_ALPHA:
-                d_opacity = gauss * grad_alpha_i
-                grad_power = opacity * gauss * grad_alpha_i
-                d_mean = grad_power * wp.vec2(-(conic[0] * dx + conic[1] * dy), -(conic[2] * dy + conic[1] * dx))
-                d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
-        if lane_any(valid) != 0:
-            d_abs = wp.vec2(wp.abs(d_mean[0]), wp.abs(d_mean[1]))
-            d_color = lane_sum_vec3(d_color)
-            d_depth = lane_sum(d_depth)
-            d_opacity = lane_sum(d_opacity)
-            d_mean = lane_sum_vec2(d_mean)
-            d_abs = lane_sum_vec2(d_abs)
-            d_conic = lane_sum_vec3(d_conic)
-            if lane_leads() != 0:
-                wp.atomic_add(grad_colors_out, g, d_color)
-                wp.atomic_add(grad_depths_out, g, d_depth)
-                wp.atomic_add(grad_opacities_out, g, d_opacity)
-                wp.atomic_add(grad_means2d_out, g, d_mean)
-                wp.atomic_add(absgrad_means2d_out, g, d_abs)
-                wp.atomic_add(grad_conics_out, g, d_conic)
+        j = (top - k) % 256
+        if staged != 0 and j == 0:
+            if k - local >= start:
+                gl = sorted_gauss_ids[k - local]
+                m = means2d[gl]
+                q = conics[gl]
+                c = colors[gl]
+                tile_ids(CACHE_STORE, local, gl)
+                tile_cache(CACHE_STORE, local, m[0])
+                tile_cache(CACHE_STORE, 256 + local, m[1])
+                tile_cache(CACHE_STORE, 512 + local, q[0])
+                tile_cache(CACHE_STORE, 768 + local, q[1])
+                tile_cache(CACHE_STORE, 1024 + local, q[2])
+                tile_cache(CACHE_STORE, 1280 + local, opacities[gl])
+                tile_cache(CACHE_STORE, 1536 + local, c[0])
+                tile_cache(CACHE_STORE, 1792 + local, c[1])
+                tile_cache(CACHE_STORE, 2048 + local, c[2])
+                tile_cache(CACHE_STORE, 2304 + local, depths[gl])
+            tile_cache(CACHE_SYNC, 0, 0.0)
+        if k <= warp_last:
+            if staged != 0:
+                g = tile_ids(CACHE_LOAD, j, 0)
+                mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
+                conic = wp.vec3(tile_cache(CACHE_LOAD, 512 + j, 0.0), tile_cache(CACHE_LOAD, 768 + j, 0.0), tile_cache(CACHE_LOAD, 1024 + j, 0.0))
+                opacity = tile_cache(CACHE_LOAD, 1280 + j, 0.0)
+            else:
+                g = sorted_gauss_ids[k]
+                mean = means2d[g]
+                conic = conics[g]
+                opacity = opacities[g]
+            dx = mean[0] - px
+            dy = mean[1] - py
+            power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
+            gauss = wp.exp(wp.min(power, 0.0))
+            raw_alpha = opacity * gauss
+            alpha = wp.min(MAX_ALPHA, raw_alpha)
+            valid = int(0)
+            if k <= last and power <= 0.0 and alpha >= ALPHA_THRESHOLD:
+                valid = 1
+            d_color = wp.vec3(0.0, 0.0, 0.0)
+            d_depth = float(0.0)
+            d_opacity = float(0.0)
+            d_mean = wp.vec2(0.0, 0.0)
+            d_conic = wp.vec3(0.0, 0.0, 0.0)
+            if valid != 0:
+                t = t / (1.0 - alpha)
+                behind_color = prev_alpha * prev_color + (1.0 - prev_alpha) * behind_color
+                behind_depth = prev_alpha * prev_depth + (1.0 - prev_alpha) * behind_depth
+                if staged != 0:
+                    c = wp.vec3(tile_cache(CACHE_LOAD, 1536 + j, 0.0), tile_cache(CACHE_LOAD, 1792 + j, 0.0), tile_cache(CACHE_LOAD, 2048 + j, 0.0))
+                    z = tile_cache(CACHE_LOAD, 2304 + j, 0.0)
+                else:
+                    c = colors[g]
+                    z = depths[g]
+                weight = alpha * t
+                d_color = weight * g_color
+                d_depth = weight * g_depth
+                grad_alpha_i = t * (wp.dot(c - behind_color, g_color) + (z - behind_depth) * g_depth)
+                grad_alpha_i += final_transmittance / (1.0 - alpha) * g_final
+                prev_alpha = alpha
+                prev_color = c
+                prev_depth = z
+                if raw_alpha < MAX_ALPHA:
+                    d_opacity = gauss * grad_alpha_i
+                    grad_power = opacity * gauss * grad_alpha_i
+                    d_mean = grad_power * wp.vec2(-(conic[0] * dx + conic[1] * dy), -(conic[2] * dy + conic[1] * dx))
+                    d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
+            if lane_any(valid) != 0:
+                d_abs = wp.vec2(wp.abs(d_mean[0]), wp.abs(d_mean[1]))
+                d_color = lane_sum_vec3(d_color)
+                d_depth = lane_sum(d_depth)
+                d_opacity = lane_sum(d_opacity)
+                d_mean = lane_sum_vec2(d_mean)
+                d_abs = lane_sum_vec2(d_abs)
+                d_conic = lane_sum_vec3(d_conic)
+                if lane_leads() != 0:
+                    wp.atomic_add(grad_colors_out, g, d_color)
+                    wp.atomic_add(grad_depths_out, g, d_depth)
+                    wp.atomic_add(grad_opacities_out, g, d_opacity)
+                    wp.atomic_add(grad_means2d_out, g, d_mean)
+                    wp.atomic_add(absgrad_means2d_out, g, d_abs)
+                    wp.atomic_add(grad_conics_out, g, d_conic)
+        if staged != 0 and (j == 255 or k == start):
+            tile_cache(CACHE_SYNC, 0, 0.0)  # the batch is read before the next one overwrites it
         k -= 1
 
 

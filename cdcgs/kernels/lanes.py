@@ -118,3 +118,40 @@ def tile_cache(op: int, slot: int, value: float) -> float:
 def on_cuda() -> int:
     """1 in CUDA code, 0 in CPU code: chooses between block-cooperative and per-thread paths."""
     ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    __shared__ int ids[256];
+    if (op == 0) { ids[slot] = value; return 0; }
+    return ids[slot];
+#else
+    return 0;
+#endif
+"""
+)
+def tile_ids(op: int, slot: int, value: int) -> int:
+    """The batch's Gaussian ids beside ``tile_cache``: CACHE_STORE or CACHE_LOAD an int (CUDA only)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    __shared__ int top;
+    if (threadIdx.x == 0) top = value;
+    __syncthreads();
+    atomicMax(&top, value);
+    __syncthreads();
+    int result = top;
+    __syncthreads();
+    return result;
+#else
+    return value;
+#endif
+"""
+)
+def block_max_int(value: int) -> int:
+    """The largest ``value`` of the block's threads (a barrier: all must call it); the value itself on the CPU."""
+    ...
