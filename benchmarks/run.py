@@ -68,8 +68,8 @@ def stage_of(kernel: str) -> str:
     return "other (torch)"
 
 
-def kernel_times(fn, iters: int) -> dict[str, float]:
-    """GPU time per stage (ms per call of ``fn``), summed over the kernels torch.profiler records."""
+def kernel_times(fn, iters: int) -> tuple[dict[str, float], dict[str, float]]:
+    """GPU time per stage and per kernel name (ms per call of ``fn``), from torch.profiler."""
     from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
@@ -80,12 +80,15 @@ def kernel_times(fn, iters: int) -> dict[str, float]:
             fn()
         torch.cuda.synchronize()
     totals: dict[str, float] = {}
+    kernels: dict[str, float] = {}
     for event in prof.events():
         if event.device_type != DeviceType.CUDA:
             continue
+        ms = event.time_range.elapsed_us() / 1e3 / iters
         stage = stage_of(event.name)
-        totals[stage] = totals.get(stage, 0.0) + event.time_range.elapsed_us() / 1e3 / iters
-    return totals
+        totals[stage] = totals.get(stage, 0.0) + ms
+        kernels[event.name] = kernels.get(event.name, 0.0) + ms
+    return totals, kernels
 
 
 def device_name(device: torch.device) -> str:
@@ -113,7 +116,9 @@ def section_raster(args, device, workload, report):
                 "peak_gb": bench_rasterize.peak_gb(step, device),
             }  # fmt: skip
             if "stages" in args.sections and device.type == "cuda":
-                row["stages_ms"] = kernel_times(step, max(3, args.iters // 3))
+                row["stages_ms"], kernels = kernel_times(step, max(3, args.iters // 3))
+                # the slowest kernels by name (JSON only): where a stage's time goes
+                row["kernels_ms"] = dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:25])
             report(row)
         if "gsplat" in images:
             diff = (images["cdcgs"] - images["gsplat"]).abs()
