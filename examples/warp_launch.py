@@ -48,7 +48,7 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
     wp.launch(
         sh_to_color_kernel,
         dim=n,
-        inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), sh_degree, camera.center],
+        inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), sh_degree, camera.center, radii],
         outputs=[colors],
         device=device,
     )

@@ -34,7 +34,8 @@ def test_plain_warp_launch_matches_rasterize(device):
 
 def test_generated_sh_adjoint_equals_the_written_out_one(device):
     """``wp.Tape`` users get Warp's generated adjoint of ``sh_to_color_kernel``; ``rasterize`` uses
-    ``sh_to_color_backward_kernel``. Both must give the same gradients at every degree."""
+    ``sh_to_color_backward_kernel``. Both must give the same gradients at every degree, and both
+    skip the Gaussians the radii mark culled (colour 0, gradient 0)."""
     import warp as wp
 
     from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_kernel
@@ -46,15 +47,21 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         sh = wp.array(0.3 * rng.normal(size=(n, 16, 3)).astype(np.float32), dtype=wp.vec3, device=device)
         grad_colors = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
         center = wp.vec3(0.1, -0.2, 3.0)
-        colors = wp.zeros(n, dtype=wp.vec3, device=device)
-        wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center], outputs=[colors], device=device)
+        culled = np.arange(n) % 5 == 0
+        radii = wp.array(np.repeat(np.where(culled, 0, 3)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device)
+        colors = wp.empty(n, dtype=wp.vec3, device=device)
+        wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors], device=device)
+        assert (colors.numpy()[culled] == 0).all() and (colors.numpy()[~culled] > 0).any()
         generated = wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros((n, 16), dtype=wp.vec3, device=device)
         wp.launch(
-            sh_to_color_kernel, n, inputs=[means, sh, degree, center], outputs=[colors],
-            adj_inputs=[*generated, 0, wp.vec3()], adj_outputs=[grad_colors], adjoint=True, device=device,
+            sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors],
+            adj_inputs=[*generated, 0, wp.vec3(), None], adj_outputs=[grad_colors], adjoint=True, device=device,
         )  # fmt: skip
         written = wp.empty(n, dtype=wp.vec3, device=device), wp.empty((n, 16), dtype=wp.vec3, device=device)
-        wp.launch(sh_to_color_backward_kernel, n, inputs=[means, sh, degree, center, grad_colors], outputs=list(written), device=device)
+        wp.launch(
+            sh_to_color_backward_kernel, n, inputs=[means, sh, degree, center, radii, grad_colors], outputs=list(written), device=device
+        )
         for name, ours, theirs in zip(("means", "sh"), written, generated):
             assert np.abs(theirs.numpy()).max() > 0 or (name == "means" and degree == 0)  # degree 0 ignores the direction
+            assert (ours.numpy()[culled] == 0).all()
             np.testing.assert_allclose(ours.numpy(), theirs.numpy(), atol=1e-5, rtol=1e-4)

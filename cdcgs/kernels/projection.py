@@ -172,10 +172,19 @@ def sh_to_color_kernel(
     gauss_sh: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
+    radii: wp.array(dtype=wp.vec2i),
     colors_out: wp.array(dtype=wp.vec3),
 ):
-    """View-dependent colour max(SH . basis(dir) + 0.5, 0), dir from the camera centre to the mean (3DGS)."""
+    """View-dependent colour max(SH . basis(dir) + 0.5, 0), dir from the camera centre to the mean (3DGS).
+
+    ``radii`` from the projection skips culled Gaussians (radius 0: colour 0, no gradient), which
+    no pixel composites; pass None to colour every Gaussian.
+    """
     i = wp.tid()
+    if radii.shape[0] > 0:
+        if radii[i][0] <= 0:
+            colors_out[i] = wp.vec3(0.0, 0.0, 0.0)
+            return
     color = SH_C0 * gauss_sh[i, 0]
     if sh_degree > 0:
         d = wp.normalize(gauss_means[i] - camera_center)
@@ -287,13 +296,22 @@ def sh_to_color_backward_kernel(
     gauss_sh: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
+    radii: wp.array(dtype=wp.vec2i),
     grad_colors: wp.array(dtype=wp.vec3),
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
 ):
     """Adjoint of ``sh_to_color_kernel``, written out: each thread owns its Gaussian's gradients, so
-    they are plain stores (every entry written, coefficients above the degree get 0), no atomics."""
+    they are plain stores (every entry written, coefficients above the degree and culled Gaussians
+    get 0), no atomics."""
     i = wp.tid()
+    stored = gauss_sh.shape[1]
+    if radii.shape[0] > 0:
+        if radii[i][0] <= 0:
+            for j in range(stored):
+                grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
+            grad_means_out[i] = wp.vec3(0.0, 0.0, 0.0)
+            return
     v = gauss_means[i] - camera_center
     d = wp.normalize(v)
     basis = sh_basis(d, sh_degree)
@@ -308,7 +326,6 @@ def sh_to_color_backward_kernel(
     # colour = max(raw, 0) per channel: the gradient passes where raw > 0
     g = wp.vec3(wp.where(raw[0] > 0.0, g[0], 0.0), wp.where(raw[1] > 0.0, g[1], 0.0), wp.where(raw[2] > 0.0, g[2], 0.0))
     w = vec16()
-    stored = gauss_sh.shape[1]
     for j in range(16):
         if j < count:
             grad_sh_out[i, j] = basis[j] * g
