@@ -18,6 +18,26 @@ def wp_array(tensor: torch.Tensor, dtype) -> wp.array:
     return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
 
 
+_descriptors: dict = {}
+
+
+def wp_arg(tensor: torch.Tensor, dtype):
+    """A kernel argument viewing ``tensor``'s memory: Warp's low-level array descriptor, cached by
+    address, shape, strides and type (torch's allocator hands the same blocks back every iteration,
+    and a render passes ~70 arrays: building each anew cost more host time than some kernels).
+
+    Only for ``wp.launch`` arguments, used while ``tensor`` is alive; the descriptor holds no
+    reference to it. Use :func:`wp_array` for a Warp array to keep or to slice.
+    """
+    key = (tensor.data_ptr(), tensor.shape, tensor.stride(), tensor.dtype, tensor.device, dtype)
+    descriptor = _descriptors.get(key)
+    if descriptor is None:
+        if len(_descriptors) >= 1024:
+            _descriptors.clear()
+        descriptor = _descriptors[key] = wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
+    return descriptor
+
+
 _streams: dict = {}
 # Warp's default device and each device's current stream are process-wide; two threads (a training
 # and its viewer) entering and leaving scopes in an interleaved order could leave either launching

@@ -9,15 +9,20 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import warp as wp
 
 from .interop import torch_allocators as _torch_allocators
 from .interop import warp_scope as _warp_scope
+from .interop import wp_arg as _arg
 from .interop import wp_array as _wp
 from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
 from .kernels.blend import blend_backward_kernel, blend_forward_kernel
-from .kernels.projection import Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_kernel
+from .kernels.projection import (
+    Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel,
+    sh_to_color_grouped_kernel, sh_to_color_kernel,
+)  # fmt: skip
 
 __all__ = ["RasterizeInfo", "rasterize"]
 
@@ -135,11 +140,11 @@ class _Project(torch.autograd.Function):
 
 
 def _project_inputs(means, quats, scales, opacities, camera, antialiased):
-    return [_wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities, wp.float32), camera, int(antialiased)]
+    return [_arg(means, wp.vec3), _arg(quats, wp.vec4), _arg(scales, wp.vec3), _arg(opacities, wp.float32), camera, int(antialiased)]
 
 
 def _project_outputs(means2d, conics, depths, opacities, radii):
-    return [_wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(depths, wp.float32), _wp(opacities, wp.float32), _wp(radii, wp.vec2i)]
+    return [_arg(means2d, wp.vec2), _arg(conics, wp.vec3), _arg(depths, wp.float32), _arg(opacities, wp.float32), _arg(radii, wp.vec2i)]
 
 
 def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
@@ -150,12 +155,13 @@ class _ShColor(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, sh, sh_degree: int, camera_center, radii):
         colors = means.new_empty(means.shape[0], 3)
+        grouped = means.device.type == "cuda"
         with _warp_scope(means.device):
             wp.launch(
-                sh_to_color_kernel,
-                means.shape[0],
-                inputs=[_wp(means, wp.vec3), _wp(sh, wp.vec3), sh_degree, camera_center, _wp(radii, wp.vec2i)],
-                outputs=[_wp(colors, wp.vec3)],
+                sh_to_color_grouped_kernel if grouped else sh_to_color_kernel,
+                means.shape[0] * (16 if grouped else 1),
+                inputs=[_arg(means, wp.vec3), _arg(sh, wp.vec3), sh_degree, camera_center, _arg(radii, wp.vec2i)],
+                outputs=[_arg(colors, wp.vec3)],
             )
         ctx.save_for_backward(means, sh, radii)
         ctx.sh_degree = sh_degree
@@ -167,15 +173,17 @@ class _ShColor(torch.autograd.Function):
         means, sh, radii = ctx.saved_tensors
         grad_means = torch.empty_like(means)
         grad_sh = torch.empty_like(sh)
+        grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
+        grouped = means.device.type == "cuda"
         with _warp_scope(means.device):
             wp.launch(
-                sh_to_color_backward_kernel,
-                means.shape[0],
+                sh_to_color_grouped_backward_kernel if grouped else sh_to_color_backward_kernel,
+                means.shape[0] * (16 if grouped else 1),
                 inputs=[
-                    _wp(means, wp.vec3), _wp(sh, wp.vec3), ctx.sh_degree, ctx.camera_center, _wp(radii, wp.vec2i),
-                    _wp(grad_colors.contiguous(), wp.vec3),
+                    _arg(means, wp.vec3), _arg(sh, wp.vec3), ctx.sh_degree, ctx.camera_center, _arg(radii, wp.vec2i),
+                    _arg(grad_colors, wp.vec3),
                 ],  # fmt: skip
-                outputs=[_wp(grad_means, wp.vec3), _wp(grad_sh, wp.vec3)],
+                outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3)],
             )
         return grad_means, grad_sh, None, None, None
 
@@ -195,9 +203,9 @@ class _Blend(torch.autograd.Function):
                 inputs=[
                     bins.tile_ranges, bins.gauss_ids,
                     *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
-                    _wp(background, wp.vec3), width, height, bins.tiles_x,
+                    _arg(background, wp.vec3), width, height, bins.tiles_x,
                 ],  # fmt: skip
-                outputs=[_wp(image, wp.vec3), _wp(transmittance, wp.float32), _wp(depth_sum, wp.float32), _wp(last, wp.int32)],
+                outputs=[_arg(image, wp.vec3), _arg(transmittance, wp.float32), _arg(depth_sum, wp.float32), _arg(last, wp.int32)],
                 block_dim=TILE_SIZE * TILE_SIZE,
             )
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, transmittance, last)
@@ -224,11 +232,11 @@ class _Blend(torch.autograd.Function):
                 inputs=[
                     bins.tile_ranges, bins.gauss_ids,
                     *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
-                    _wp(background, wp.vec3), width, height, bins.tiles_x,
-                    _wp(transmittance, wp.float32), _wp(last, wp.int32),
-                    _wp(grad_image, wp.vec3), _wp(grad_alpha, wp.float32), _wp(grad_depth_sum, wp.float32),
+                    _arg(background, wp.vec3), width, height, bins.tiles_x,
+                    _arg(transmittance, wp.float32), _arg(last, wp.int32),
+                    _arg(grad_image, wp.vec3), _arg(grad_alpha, wp.float32), _arg(grad_depth_sum, wp.float32),
                 ],  # fmt: skip
-                outputs=[*_blend_gaussian_inputs(*grads), _wp(absgrad, wp.vec2)],
+                outputs=[*_blend_gaussian_inputs(*grads), _arg(absgrad, wp.vec2)],
                 block_dim=TILE_SIZE * TILE_SIZE,
             )
         grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
@@ -236,7 +244,7 @@ class _Blend(torch.autograd.Function):
 
 
 def _blend_gaussian_inputs(means2d, conics, colors, opacities, depths):
-    return [_wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(colors, wp.vec3), _wp(opacities, wp.float32), _wp(depths, wp.float32)]
+    return [_arg(means2d, wp.vec2), _arg(conics, wp.vec3), _arg(colors, wp.vec3), _arg(opacities, wp.float32), _arg(depths, wp.float32)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -265,24 +273,27 @@ def _check_camera(viewmat, K, width, height, near_plane):
         raise ValueError(f"near_plane must be a positive finite number, got {near_plane!r}")
     mats = {}
     for name, value, size in (("viewmat", viewmat, 4), ("K", K, 3)):
+        # numpy, not torch: these checks run on every render and torch's per-op overhead showed
         try:
-            mat = torch.as_tensor(value).detach().to("cpu", torch.float64)
+            if isinstance(value, torch.Tensor):
+                value = value.detach().to("cpu", torch.float64).numpy()
+            mat = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError, RuntimeError) as err:
             raise ValueError(f"{name} must be a {size}x{size} matrix: {err}") from None
         if mat.shape != (size, size):
             raise ValueError(f"{name} must have shape [{size}, {size}], got {list(mat.shape)}")
-        if not torch.isfinite(mat).all():
+        if not np.isfinite(mat).all():
             raise ValueError(f"{name} has non-finite entries")
         mats[name] = mat
     view, intr = mats["viewmat"], mats["K"]
-    if not torch.allclose(view[3], view.new_tensor([0.0, 0.0, 0.0, 1.0])):
+    if not np.allclose(view[3], [0.0, 0.0, 0.0, 1.0], rtol=1e-5, atol=1e-8):
         raise ValueError(f"viewmat's last row must be [0, 0, 0, 1], got {view[3].tolist()}")
     rotation = view[:3, :3]
-    if not torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-4):
+    if not np.allclose(rotation @ rotation.T, np.eye(3), rtol=1e-5, atol=1e-4):
         raise ValueError("viewmat's upper-left 3x3 block must be a rotation (world-to-camera, no scale)")
     if intr[0, 0] <= 0 or intr[1, 1] <= 0:
-        raise ValueError(f"K must have positive focal lengths, got fx={intr[0, 0].item()}, fy={intr[1, 1].item()}")
-    return make_camera(view.numpy(), intr.numpy(), width, height, near_plane)
+        raise ValueError(f"K must have positive focal lengths, got fx={intr[0, 0]}, fy={intr[1, 1]}")
+    return make_camera(view, intr, width, height, near_plane)
 
 
 # --------------------------------------------------------------------------------------------

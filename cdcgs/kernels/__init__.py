@@ -2,7 +2,15 @@
 
 from .binning import TILE_SIZE, TileBins, bin_gaussians, count_tiles_kernel, emit_keys_kernel, tile_ranges_kernel
 from .blend import blend_backward_kernel, blend_forward_kernel
-from .projection import Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_kernel
+from .projection import (
+    Camera,
+    make_camera,
+    project_gaussians_kernel,
+    sh_to_color_backward_kernel,
+    sh_to_color_grouped_backward_kernel,
+    sh_to_color_grouped_kernel,
+    sh_to_color_kernel,
+)
 
 __all__ = [
     "TILE_SIZE",
@@ -16,6 +24,8 @@ __all__ = [
     "make_camera",
     "project_gaussians_kernel",
     "sh_to_color_backward_kernel",
+    "sh_to_color_grouped_backward_kernel",
+    "sh_to_color_grouped_kernel",
     "sh_to_color_kernel",
     "tile_ranges_kernel",
 ]

@@ -13,6 +13,10 @@ from .lanes import (
 )
 from .projection import ALPHA_THRESHOLD
 
+# CUDA: --use_fast_math (approximate exp and division, as gsplat builds its kernels); the CPU build
+# ignores the option.
+wp.set_module_options({"fast_math": True})
+
 # Alpha is clamped here so that one Gaussian never makes a pixel fully opaque (3DGS).
 MAX_ALPHA = wp.constant(0.99)
 # Compositing stops before a Gaussian that would bring transmittance below this (3DGS).

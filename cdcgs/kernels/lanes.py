@@ -76,6 +76,49 @@ def lane_sum_vec3(v: wp.vec3):
 
 
 # ------------------------------------------------------------------------------------------------
+# Groups of 16 lanes (half a warp) that share one Gaussian: one thread per SH coefficient. Only
+# the group's own lanes take part, so a group may leave early as a whole. CUDA only: on the CPU a
+# thread is alone and these return their input (kernels using them are launched on CUDA only).
+
+_GROUP_MASK = "((threadIdx.x & 16) ? 0xffff0000u : 0x0000ffffu)"
+
+
+@wp.func_native(
+    f"""
+#if defined(__CUDA_ARCH__)
+    float v = value;
+    for (int offset = 8; offset > 0; offset >>= 1) v += __shfl_xor_sync({_GROUP_MASK}, v, offset, 16);
+    return v;
+#else
+    return value;
+#endif
+"""
+)
+def group_sum(value: float) -> float:
+    """The sum of ``value`` over the 16 lanes of this thread's half warp, in every lane."""
+    ...
+
+
+@wp.func_native(
+    f"""
+#if defined(__CUDA_ARCH__)
+    return __shfl_sync({_GROUP_MASK}, value, lane, 16);
+#else
+    return value;
+#endif
+"""
+)
+def group_read(value: float, lane: int) -> float:
+    """``value`` as lane ``lane`` (0..15) of this thread's half warp holds it."""
+    ...
+
+
+@wp.func
+def group_sum_vec3(v: wp.vec3):
+    return wp.vec3(group_sum(v[0]), group_sum(v[1]), group_sum(v[2]))
+
+
+# ------------------------------------------------------------------------------------------------
 # The block of 256 threads that renders one tile: a cache of the tile's next 256 Gaussians.
 
 CACHE_FIELDS = 10  # mean x, y; conic a, b, c; opacity; colour r, g, b; depth

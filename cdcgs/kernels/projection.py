@@ -11,6 +11,12 @@ Tests check both against a float64 reference.
 
 import warp as wp
 
+from .lanes import group_read, group_sum_vec3
+
+# CUDA: --use_fast_math (approximate exp, division and square root, as gsplat builds its kernels);
+# the CPU build ignores the option.
+wp.set_module_options({"fast_math": True})
+
 # Alpha below this never composites (3DGS).
 ALPHA_THRESHOLD = wp.constant(1.0 / 255.0)
 # Added to the diagonal of every 2D covariance, in px^2 (3DGS low-pass filter).
@@ -340,3 +346,98 @@ def sh_to_color_backward_kernel(
         # d = v / |v|: the Jacobian is (I - d d^T) / |v|
         grad_mean = (grad_d - d * wp.dot(d, grad_d)) / wp.length(v)
     grad_means_out[i] = grad_mean
+
+
+# ------------------------------------------------------------------------------------------------
+# The same two kernels for CUDA, 16 threads per Gaussian: thread j of a Gaussian's half warp reads
+# and writes its coefficient j, so a warp touches 384 contiguous bytes per access instead of 32
+# rows 192 bytes apart, and the half warp sums its terms in registers (``lanes.group_*``). Launch
+# with dim = 16 N. CUDA only (on the CPU the per-Gaussian kernels above run).
+
+
+@wp.func
+def pick16(v: vec16, j: int):
+    """``v[j]`` by 16 selects: indexing with a runtime ``j`` would put ``v`` in local memory."""
+    r = v[0]
+    for k in range(1, 16):
+        r = wp.where(j == k, v[k], r)
+    return r
+
+
+@wp.kernel(enable_backward=False)
+def sh_to_color_grouped_kernel(
+    gauss_means: wp.array(dtype=wp.vec3),
+    gauss_sh: wp.array2d(dtype=wp.vec3),
+    sh_degree: int,
+    camera_center: wp.vec3,
+    radii: wp.array(dtype=wp.vec2i),
+    colors_out: wp.array(dtype=wp.vec3),
+):
+    """``sh_to_color_kernel`` with one thread per coefficient (dim 16 N, CUDA only)."""
+    t = wp.tid()
+    i = t // 16
+    j = t - i * 16
+    if radii.shape[0] > 0:
+        if radii[i][0] <= 0:  # the whole half warp leaves together
+            if j == 0:
+                colors_out[i] = wp.vec3(0.0, 0.0, 0.0)
+            return
+    term = wp.vec3(0.0, 0.0, 0.0)
+    if j < (sh_degree + 1) * (sh_degree + 1):
+        d = wp.normalize(gauss_means[i] - camera_center)
+        term = pick16(sh_basis(d, sh_degree), j) * gauss_sh[i, j]
+    color = group_sum_vec3(term) + wp.vec3(0.5, 0.5, 0.5)
+    if j == 0:
+        colors_out[i] = wp.vec3(wp.max(color[0], 0.0), wp.max(color[1], 0.0), wp.max(color[2], 0.0))
+
+
+@wp.kernel(enable_backward=False)
+def sh_to_color_grouped_backward_kernel(
+    gauss_means: wp.array(dtype=wp.vec3),
+    gauss_sh: wp.array2d(dtype=wp.vec3),
+    sh_degree: int,
+    camera_center: wp.vec3,
+    radii: wp.array(dtype=wp.vec2i),
+    grad_colors: wp.array(dtype=wp.vec3),
+    grad_means_out: wp.array(dtype=wp.vec3),
+    grad_sh_out: wp.array2d(dtype=wp.vec3),
+):
+    """``sh_to_color_backward_kernel`` with one thread per coefficient (dim 16 N, CUDA only)."""
+    t = wp.tid()
+    i = t // 16
+    j = t - i * 16
+    stored = gauss_sh.shape[1]
+    zero = wp.vec3(0.0, 0.0, 0.0)
+    if radii.shape[0] > 0:
+        if radii[i][0] <= 0:  # the whole half warp leaves together
+            for k in range(j, stored, 16):
+                grad_sh_out[i, k] = zero
+            if j == 0:
+                grad_means_out[i] = zero
+            return
+    count = (sh_degree + 1) * (sh_degree + 1)
+    v = gauss_means[i] - camera_center
+    d = wp.normalize(v)
+    b = pick16(sh_basis(d, sh_degree), j)
+    coefficient = zero
+    if j < count:
+        coefficient = gauss_sh[i, j]
+    raw = group_sum_vec3(b * coefficient) + wp.vec3(0.5, 0.5, 0.5)
+    g = grad_colors[i]
+    # colour = max(raw, 0) per channel: the gradient passes where raw > 0
+    g = wp.vec3(wp.where(raw[0] > 0.0, g[0], 0.0), wp.where(raw[1] > 0.0, g[1], 0.0), wp.where(raw[2] > 0.0, g[2], 0.0))
+    if j < stored:
+        grad_sh_out[i, j] = wp.where(j < count, b * g, zero)
+    for k in range(j + 16, stored, 16):
+        grad_sh_out[i, k] = zero
+    # every lane gathers the 16 weights dot(coefficient, g); lane 0 writes the mean's gradient
+    w_j = wp.dot(coefficient, g)
+    w = vec16()
+    for k in range(16):
+        w[k] = group_read(w_j, k)
+    if j == 0:
+        grad_mean = zero
+        if sh_degree > 0:
+            grad_d = sh_basis_vjp(d, w, sh_degree)
+            grad_mean = (grad_d - d * wp.dot(d, grad_d)) / wp.length(v)
+        grad_means_out[i] = grad_mean
