@@ -34,7 +34,11 @@ def wp_arg(tensor: torch.Tensor, dtype):
     if descriptor is None:
         if len(_descriptors) >= 1024:
             _descriptors.clear()
-        descriptor = _descriptors[key] = wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
+        descriptor = wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
+        # from_torch pins the tensor to its descriptor; a cached pin would keep every tensor ever
+        # passed alive (and make autograd copy gradients it could otherwise take over).
+        descriptor._ref = descriptor._gradref = None
+        _descriptors[key] = descriptor
     return descriptor
 
 

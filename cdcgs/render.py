@@ -21,7 +21,7 @@ from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
 from .kernels.blend import blend_backward_kernel, blend_forward_kernel
 from .kernels.projection import (
     Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel,
-    sh_to_color_grouped_kernel, sh_to_color_kernel,
+    sh_to_color_kernel,
 )  # fmt: skip
 
 __all__ = ["RasterizeInfo", "rasterize"]
@@ -155,11 +155,10 @@ class _ShColor(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, sh, sh_degree: int, camera_center, radii):
         colors = means.new_empty(means.shape[0], 3)
-        grouped = means.device.type == "cuda"
         with _warp_scope(means.device):
             wp.launch(
-                sh_to_color_grouped_kernel if grouped else sh_to_color_kernel,
-                means.shape[0] * (16 if grouped else 1),
+                sh_to_color_kernel,
+                means.shape[0],
                 inputs=[_arg(means, wp.vec3), _arg(sh, wp.vec3), sh_degree, camera_center, _arg(radii, wp.vec2i)],
                 outputs=[_arg(colors, wp.vec3)],
             )

@@ -68,17 +68,15 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
             np.testing.assert_allclose(ours.numpy(), theirs.numpy(), atol=1e-5, rtol=1e-4)
 
 
-def test_grouped_sh_kernels_equal_the_per_gaussian_ones(device):
-    """On CUDA ``rasterize`` runs the SH colour with 16 threads per Gaussian (half-warp sums); it
-    must give what the per-Gaussian kernels give, at every degree, with as many coefficients stored
+def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
+    """On CUDA ``rasterize`` runs the SH adjoint with 16 threads per Gaussian (half-warp sums); it
+    must give what the per-Gaussian kernel gives, at every degree, with as many coefficients stored
     as the degree needs or all 16, and with culled Gaussians."""
     if device != "cuda":
-        pytest.skip("the grouped SH kernels use warp shuffles: CUDA only")
+        pytest.skip("the grouped SH adjoint uses warp shuffles: CUDA only")
     import warp as wp
 
-    from cdcgs.kernels import (
-        sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel, sh_to_color_grouped_kernel, sh_to_color_kernel,
-    )  # fmt: skip
+    from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel
 
     rng = np.random.default_rng(1)
     n = 77  # odd: the last warp holds one Gaussian
@@ -91,16 +89,33 @@ def test_grouped_sh_kernels_equal_the_per_gaussian_ones(device):
             grad_colors = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
             center = wp.vec3(0.1, -0.2, 3.0)
             outputs = {}
-            for name, forward, backward, dim in (
-                ("per gaussian", sh_to_color_kernel, sh_to_color_backward_kernel, n),
-                ("grouped", sh_to_color_grouped_kernel, sh_to_color_grouped_backward_kernel, 16 * n),
+            for name, backward, dim in (
+                ("per gaussian", sh_to_color_backward_kernel, n),
+                ("grouped", sh_to_color_grouped_backward_kernel, 16 * n),
             ):
-                colors = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grad_sh = wp.full((n, stored), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                wp.launch(forward, dim, inputs=[means, sh, degree, center, radii], outputs=[colors], device=device)
                 wp.launch(backward, dim, inputs=[means, sh, degree, center, radii, grad_colors], outputs=[grads, grad_sh], device=device)
-                outputs[name] = (colors.numpy(), grads.numpy(), grad_sh.numpy())
+                outputs[name] = (grads.numpy(), grad_sh.numpy())
             for ours, theirs in zip(outputs["grouped"], outputs["per gaussian"]):
                 assert (theirs != 7.0).all()  # every entry written
                 np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=1e-4)
+
+
+def test_launch_arguments_do_not_keep_tensors_alive():
+    """``interop.wp_arg`` caches descriptors by address; a cached descriptor must not pin its tensor
+    (every tensor ever rendered would stay allocated, and autograd would copy gradients it could take)."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from cdcgs.interop import wp_arg
+
+    tensor = torch.zeros(10, 3)
+    first = wp_arg(tensor, wp.vec3)
+    assert wp_arg(tensor, wp.vec3) is first  # cached
+    alive = weakref.ref(tensor)
+    del tensor
+    gc.collect()
+    assert alive() is None

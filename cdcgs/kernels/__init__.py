@@ -8,7 +8,6 @@ from .projection import (
     project_gaussians_kernel,
     sh_to_color_backward_kernel,
     sh_to_color_grouped_backward_kernel,
-    sh_to_color_grouped_kernel,
     sh_to_color_kernel,
 )
 
@@ -25,7 +24,6 @@ __all__ = [
     "project_gaussians_kernel",
     "sh_to_color_backward_kernel",
     "sh_to_color_grouped_backward_kernel",
-    "sh_to_color_grouped_kernel",
     "sh_to_color_kernel",
     "tile_ranges_kernel",
 ]

@@ -13,9 +13,9 @@ from .lanes import (
 )
 from .projection import ALPHA_THRESHOLD
 
-# CUDA: --use_fast_math (approximate exp and division, as gsplat builds its kernels); the CPU build
-# ignores the option.
-wp.set_module_options({"fast_math": True})
+# CUDA: --use_fast_math (approximate exp and division, as gsplat builds its kernels; the CPU build
+# ignores it), and no grid-stride loop (one pixel per thread, fewer registers).
+wp.set_module_options({"fast_math": True, "default_grid_stride": False})
 
 # Alpha is clamped here so that one Gaussian never makes a pixel fully opaque (3DGS).
 MAX_ALPHA = wp.constant(0.99)
@@ -48,6 +48,32 @@ def splat_alpha(mean: wp.vec2, conic: wp.vec3, opacity: float, px: float, py: fl
     return alpha
 
 
+@wp.func
+def stage_gaussian(
+    slot: int,
+    g: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    depths: wp.array(dtype=float),
+):
+    """Copy Gaussian ``g`` into ``slot`` of the block's shared cache (CUDA; fields 256 floats apart)."""
+    m = means2d[g]
+    q = conics[g]
+    c = colors[g]
+    tile_cache(CACHE_STORE, slot, m[0])
+    tile_cache(CACHE_STORE, 256 + slot, m[1])
+    tile_cache(CACHE_STORE, 512 + slot, q[0])
+    tile_cache(CACHE_STORE, 768 + slot, q[1])
+    tile_cache(CACHE_STORE, 1024 + slot, q[2])
+    tile_cache(CACHE_STORE, 1280 + slot, opacities[g])
+    tile_cache(CACHE_STORE, 1536 + slot, c[0])
+    tile_cache(CACHE_STORE, 1792 + slot, c[1])
+    tile_cache(CACHE_STORE, 2048 + slot, c[2])
+    tile_cache(CACHE_STORE, 2304 + slot, depths[g])
+
+
 @wp.kernel(enable_backward=False)
 def blend_forward_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
@@ -68,9 +94,10 @@ def blend_forward_kernel(
 ):
     """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel.
 
-    On CUDA the block's 256 threads (one tile) load each next batch of 256 of the tile's Gaussians
-    into shared memory together, one Gaussian per thread, and every pixel then reads the batch from
-    there; the block stops when all its pixels are opaque. On the CPU each pixel reads global memory.
+    The tile's list is walked in batches of 256. On CUDA the block's 256 threads (one tile) first
+    load the batch into shared memory together, one Gaussian per thread, and every pixel then reads
+    it from there; a pixel that turns opaque leaves the batch early and waits at the barrier, and
+    the block stops when all its pixels are opaque. On the CPU each pixel reads global memory.
     """
     tid = wp.tid()
     pix = tile_pixel(tid, tiles_x)
@@ -90,44 +117,33 @@ def blend_forward_kernel(
     color = wp.vec3(0.0, 0.0, 0.0)
     depth = float(0.0)
     last = start - 1
-    for k in range(start, end):
-        j = (k - start) % 256
-        if staged != 0 and j == 0:
+    batch = start
+    while batch < end:
+        count = wp.min(256, end - batch)
+        if staged != 0:
             if tile_cache(CACHE_COUNT, 0, float(done)) >= 256.0:
                 break
-            if k + local < end:
-                gl = sorted_gauss_ids[k + local]
-                m = means2d[gl]
-                q = conics[gl]
-                c = colors[gl]
-                tile_cache(CACHE_STORE, local, m[0])
-                tile_cache(CACHE_STORE, 256 + local, m[1])
-                tile_cache(CACHE_STORE, 512 + local, q[0])
-                tile_cache(CACHE_STORE, 768 + local, q[1])
-                tile_cache(CACHE_STORE, 1024 + local, q[2])
-                tile_cache(CACHE_STORE, 1280 + local, opacities[gl])
-                tile_cache(CACHE_STORE, 1536 + local, c[0])
-                tile_cache(CACHE_STORE, 1792 + local, c[1])
-                tile_cache(CACHE_STORE, 2048 + local, c[2])
-                tile_cache(CACHE_STORE, 2304 + local, depths[gl])
+            if local < count:
+                stage_gaussian(local, sorted_gauss_ids[batch + local], means2d, conics, colors, opacities, depths)
             tile_cache(CACHE_SYNC, 0, 0.0)
         if done == 0:
-            g = int(0)
-            if staged != 0:
-                mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
-                conic = wp.vec3(tile_cache(CACHE_LOAD, 512 + j, 0.0), tile_cache(CACHE_LOAD, 768 + j, 0.0), tile_cache(CACHE_LOAD, 1024 + j, 0.0))
-                opacity = tile_cache(CACHE_LOAD, 1280 + j, 0.0)
-            else:
-                g = sorted_gauss_ids[k]
-                mean = means2d[g]
-                conic = conics[g]
-                opacity = opacities[g]
-            alpha = splat_alpha(mean, conic, opacity, px, py)
-            if alpha > 0.0:
-                next_transmittance = transmittance * (1.0 - alpha)
-                if next_transmittance < MIN_TRANSMITTANCE:
-                    done = 1
+            for j in range(count):
+                g = int(0)
+                if staged != 0:
+                    mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
+                    conic = wp.vec3(tile_cache(CACHE_LOAD, 512 + j, 0.0), tile_cache(CACHE_LOAD, 768 + j, 0.0), tile_cache(CACHE_LOAD, 1024 + j, 0.0))
+                    opacity = tile_cache(CACHE_LOAD, 1280 + j, 0.0)
                 else:
+                    g = sorted_gauss_ids[batch + j]
+                    mean = means2d[g]
+                    conic = conics[g]
+                    opacity = opacities[g]
+                alpha = splat_alpha(mean, conic, opacity, px, py)
+                if alpha > 0.0:
+                    next_transmittance = transmittance * (1.0 - alpha)
+                    if next_transmittance < MIN_TRANSMITTANCE:
+                        done = 1
+                        break
                     if staged != 0:
                         gauss_color = wp.vec3(tile_cache(CACHE_LOAD, 1536 + j, 0.0), tile_cache(CACHE_LOAD, 1792 + j, 0.0), tile_cache(CACHE_LOAD, 2048 + j, 0.0))
                         z = tile_cache(CACHE_LOAD, 2304 + j, 0.0)
@@ -138,11 +154,12 @@ def blend_forward_kernel(
                     color += weight * gauss_color
                     depth += weight * z
                     transmittance = next_transmittance
-                    last = k
-        if staged == 0 and done != 0:
-            break
-        if staged != 0 and (j == 255 or k == end - 1):
+                    last = batch + j
+        if staged != 0:
             tile_cache(CACHE_SYNC, 0, 0.0)  # the batch is read before the next one overwrites it
+        elif done != 0:
+            break
+        batch += 256
 
     if x < width and y < height:
         image_out[y, x] = color + transmittance * background[0]
@@ -151,7 +168,8 @@ def blend_forward_kernel(
         last_contributor_out[y, x] = last
 
 
-@wp.kernel(enable_backward=False)
+# 3 blocks of 256 per SM: at most 85 registers (the compiler's own choice, 114, allows 2 blocks).
+@wp.kernel(enable_backward=False, launch_bounds=(256, 3))
 def blend_backward_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
     sorted_gauss_ids: wp.array(dtype=wp.int32),
@@ -215,34 +233,25 @@ def blend_backward_kernel(
     prev_alpha = float(0.0)
     prev_color = wp.vec3(0.0, 0.0, 0.0)
     prev_depth = float(0.0)
-    # On CUDA the block walks its tile's list back to front from the last contributor of any of its
-    # pixels, loading each batch of 256 Gaussians into shared memory together; a warp skips the
-    # Gaussians behind all of its pixels. On the CPU every thread starts at its own last contributor.
+    # The list is walked back to front in batches of 256 from the last contributor of any pixel of
+    # the block (on CUDA each batch is loaded into shared memory together, as in the forward pass);
+    # within a batch a warp starts at the last contributor of any of its lanes, so all its lanes
+    # visit the same Gaussians (the collectives need that) and none visits one behind them all. On
+    # the CPU every thread is its own warp and block: it starts at its own last contributor.
     staged = on_cuda()
     warp_last = lane_max_int(last)
-    top = block_max_int(warp_last)
-    k = top
-    while k >= start:
-        j = (top - k) % 256
-        if staged != 0 and j == 0:
-            if k - local >= start:
-                gl = sorted_gauss_ids[k - local]
-                m = means2d[gl]
-                q = conics[gl]
-                c = colors[gl]
+    batch = block_max_int(warp_last)  # index of the batch's first (back-most) Gaussian
+    while batch >= start:
+        count = wp.min(256, batch - start + 1)
+        if staged != 0:
+            if local < count:
+                gl = sorted_gauss_ids[batch - local]
                 tile_ids(CACHE_STORE, local, gl)
-                tile_cache(CACHE_STORE, local, m[0])
-                tile_cache(CACHE_STORE, 256 + local, m[1])
-                tile_cache(CACHE_STORE, 512 + local, q[0])
-                tile_cache(CACHE_STORE, 768 + local, q[1])
-                tile_cache(CACHE_STORE, 1024 + local, q[2])
-                tile_cache(CACHE_STORE, 1280 + local, opacities[gl])
-                tile_cache(CACHE_STORE, 1536 + local, c[0])
-                tile_cache(CACHE_STORE, 1792 + local, c[1])
-                tile_cache(CACHE_STORE, 2048 + local, c[2])
-                tile_cache(CACHE_STORE, 2304 + local, depths[gl])
+                stage_gaussian(local, gl, means2d, conics, colors, opacities, depths)
             tile_cache(CACHE_SYNC, 0, 0.0)
-        if k <= warp_last:
+        for j in range(wp.max(batch - warp_last, 0), count):
+            k = batch - j
+            g = int(0)
             if staged != 0:
                 g = tile_ids(CACHE_LOAD, j, 0)
                 mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
@@ -305,9 +314,9 @@ def blend_backward_kernel(
                     wp.atomic_add(grad_means2d_out, g, d_mean)
                     wp.atomic_add(absgrad_means2d_out, g, d_abs)
                     wp.atomic_add(grad_conics_out, g, d_conic)
-        if staged != 0 and (j == 255 or k == start):
+        if staged != 0:
             tile_cache(CACHE_SYNC, 0, 0.0)  # the batch is read before the next one overwrites it
-        k -= 1
+        batch -= 256
 
 
 @wp.kernel(enable_backward=False)
