@@ -74,6 +74,8 @@ def test_suite_runs_and_writes_one_json(tmp_path, capsys):
     raster = next(r for r in report["rows"] if r["section"] == "raster")
     assert raster["n"] == 300 and raster["forward_ms"] > 0 and raster["forward_backward_ms"] > 0 and raster["intersections"] > 0
     training = [r for r in report["rows"] if r["section"] == "training"]
-    assert training[0]["iterations"] == 10 and training[1]["psnr"] == 31.41
+    with open(os.path.join(ROOT, "benchmarks", "peers", "gsplat_bonsai.json")) as f:
+        quoted = json.load(f)
+    assert training[0]["iterations"] == 10 and training[1]["psnr"] == quoted["psnr"]  # quoted as it stands
     printed = capsys.readouterr().out
     assert "## cdcgs benchmark suite on cpu" in printed and "| training run |" in printed
