@@ -49,11 +49,26 @@ _streams: dict = {}
 _scope_lock = threading.RLock()
 
 
+_active = threading.local()
+
+
 @contextlib.contextmanager
 def warp_scope(device: torch.device):
-    """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe)."""
+    """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe).
+
+    Nested scopes for the same device and stream in one thread cost nothing: the outer one stays.
+    """
+    key = (device.type, device.index, torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None)
+    if getattr(_active, "key", None) == key:
+        yield _active.device
+        return
     with _scope_lock, _scoped(device) as warp_device:
-        yield warp_device
+        outer = getattr(_active, "key", None), getattr(_active, "device", None)
+        _active.key, _active.device = key, warp_device
+        try:
+            yield warp_device
+        finally:
+            _active.key, _active.device = outer
 
 
 @contextlib.contextmanager

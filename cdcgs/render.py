@@ -19,6 +19,7 @@ from .interop import wp_arg as _arg
 from .interop import wp_array as _wp
 from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
 from .kernels.blend import blend_backward_kernel, blend_forward_kernel
+from .kernels.checks import find_nonfinite_kernel
 from .kernels.projection import (
     Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel,
     sh_to_color_kernel,
@@ -264,12 +265,39 @@ def _check_tensor(name: str, value, shape: tuple, device: torch.device | None) -
     return value.contiguous()
 
 
+_cameras: dict = {}
+
+
 def _check_camera(viewmat, K, width, height, near_plane):
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise ValueError(f"{name} must be a positive int (pixels), got {value!r}")
     if not (isinstance(near_plane, (int, float)) and math.isfinite(near_plane) and near_plane > 0):
         raise ValueError(f"near_plane must be a positive finite number, got {near_plane!r}")
+    # A training renders the same few hundred cameras over and over: a camera already checked and
+    # built is reused, found by value (the matrices' entries), so a changed matrix is a new camera.
+    key = (_matrix_key(viewmat), _matrix_key(K), width, height, float(near_plane))
+    if key[0] is not None and key[1] is not None:
+        camera = _cameras.get(key)
+        if camera is None:
+            if len(_cameras) >= 4096:
+                _cameras.clear()
+            camera = _cameras[key] = _build_camera(viewmat, K, width, height, near_plane)
+        return camera
+    return _build_camera(viewmat, K, width, height, near_plane)
+
+
+def _matrix_key(value):
+    """The entries of a small tensor or numpy matrix as a hashable tuple (None for anything else,
+    which is then checked on every call)."""
+    if isinstance(value, torch.Tensor) and value.numel() <= 16:
+        return (tuple(value.shape), tuple(value.detach().reshape(-1).tolist()))
+    if isinstance(value, np.ndarray) and value.size <= 16 and value.dtype.kind == "f":
+        return (value.shape, tuple(value.ravel().tolist()))
+    return None
+
+
+def _build_camera(viewmat, K, width, height, near_plane):
     mats = {}
     for name, value, size in (("viewmat", viewmat, 4), ("K", K, 3)):
         # numpy, not torch: these checks run on every render and torch's per-op overhead showed
@@ -379,28 +407,34 @@ def rasterize(
             raise ValueError(f"background must have 3 entries, got {background.numel()}")
     camera = _check_camera(viewmat, K, width, height, near_plane)
 
-    checked = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "background": background}
-    checked["sh" if sh is not None else "colors"] = sh if sh is not None else colors
-    # min and max propagate NaN and show +-inf: one read of each tensor, no [N, ...] bool copy
-    # (isfinite(sh).all() writes and rereads a bool per coefficient: ~0.3 ms at 3M Gaussians).
-    finite = torch.isfinite(torch.stack([torch.stack(torch.aminmax(t)) for t in checked.values()])).all(dim=1)
-
-    means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased)
-    if sh is not None:
-        center = camera.center
-        colors = _ShColor.apply(means, sh, sh_degree, wp.vec3(center[0], center[1], center[2]), radii)
-
-    def read_count(tile_offsets: wp.array) -> int:
-        # The single host synchronisation of a render: the intersection count sizes the sort
-        # buffers. The finiteness flags travel with it so that validation costs no extra sync.
-        values = torch.cat([finite.to(torch.int64), wp.to_torch(tile_offsets)[-1:].to(torch.int64)]).tolist()
-        for (name, _), ok in zip(checked.items(), values[:-1]):
-            if not ok:
-                raise ValueError(f"{name} has non-finite values (NaN or inf)")
-        return values[-1]
-
-    allocate, zeros = _torch_allocators(device)
+    # One Warp scope for the whole forward pass (the autograd functions' own scopes nest for free).
     with _warp_scope(device):
+        checked = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "background": background}
+        checked["sh" if sh is not None else "colors"] = sh if sh is not None else colors
+        # One kernel flags the tensors holding NaN or inf (each read once, coalesced; the flags travel
+        # with the intersection count below, so validation costs no extra host synchronisation).
+        nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
+        flat = [t.view(-1) for t in checked.values()]
+        wp.launch(
+            find_nonfinite_kernel, max(t.numel() for t in flat),
+            inputs=[_arg(t, wp.float32) for t in flat], outputs=[_arg(nonfinite, wp.int32)],
+        )  # fmt: skip
+
+        means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased)
+        if sh is not None:
+            center = camera.center
+            colors = _ShColor.apply(means, sh, sh_degree, wp.vec3(center[0], center[1], center[2]), radii)
+
+        def read_count(tile_offsets: wp.array) -> int:
+            # The single host synchronisation of a render: the intersection count sizes the sort
+            # buffers. The finiteness flags travel with it so that validation costs no extra sync.
+            values = torch.cat([nonfinite, wp.to_torch(tile_offsets)[-1:]]).tolist()
+            for name, bad in zip(checked, values[:-1]):
+                if bad:
+                    raise ValueError(f"{name} has non-finite values (NaN or inf)")
+            return values[-1]
+
+        allocate, zeros = _torch_allocators(device)
         bins = bin_gaussians(
             _wp(means2d.detach(), wp.vec2),
             _wp(radii, wp.vec2i),
@@ -411,10 +445,10 @@ def rasterize(
             zeros=zeros,
             read_count=read_count,
         )
-    absgrad = means.new_zeros(n, 2)
-    image, transmittance, depth_sum, last = _Blend.apply(
-        means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad
-    )
+        absgrad = means.new_zeros(n, 2)
+        image, transmittance, depth_sum, last = _Blend.apply(
+            means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad
+        )
     alpha = 1.0 - transmittance
     depth = None
     if render_depth:

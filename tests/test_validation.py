@@ -52,6 +52,40 @@ def test_non_finite_values(args, name, value):
         call({**tensors, name: broken}, camera)
 
 
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "sh", "colors"])
+def test_non_finite_last_value_is_found(args, name):
+    """The check runs one thread per value of the longest input; every input's last value counts."""
+    tensors, camera = args
+    if name == "colors":
+        tensors = {**{k: v for k, v in tensors.items() if k != "sh"}, "colors": torch.rand_like(tensors["means"])}
+    broken = tensors[name].clone()
+    broken.view(-1)[-1] = -float("inf")
+    with pytest.raises(ValueError, match=f"{name} has non-finite values"):
+        call({**tensors, name: broken}, camera)
+
+
+def test_cameras_are_reused_by_value_only(args):
+    """A camera checked once is reused for equal matrices, never for changed ones."""
+    from cdcgs.render import _check_camera
+
+    tensors, camera = args
+    first = _check_camera(camera["viewmat"], camera["K"], 24, 16, 0.01)
+    assert _check_camera(camera["viewmat"].clone(), camera["K"].numpy().copy(), 24, 16, 0.01) is not None
+    assert _check_camera(camera["viewmat"].clone(), camera["K"].clone(), 24, 16, 0.01) is first
+    moved = camera["viewmat"].clone()
+    moved[0, 3] += 0.5
+    other = _check_camera(moved, camera["K"], 24, 16, 0.01)
+    assert other is not first and other.translation[0] == pytest.approx(first.translation[0] + 0.5)
+    assert _check_camera(camera["viewmat"], camera["K"], 24, 16, 0.02) is not first
+    image_moved = call(tensors, {**camera, "viewmat": moved})[0]
+    image = call(tensors, camera)[0]
+    assert not torch.equal(image, image_moved)
+    bad = camera["viewmat"].clone()
+    bad[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="viewmat has non-finite entries"):
+        call(tensors, {**camera, "viewmat": bad})
+
+
 def test_non_finite_background(args):
     tensors, camera = args
     with pytest.raises(ValueError, match="background has non-finite"):
