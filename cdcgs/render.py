@@ -266,6 +266,9 @@ def _check_tensor(name: str, value, shape: tuple, device: torch.device | None) -
 
 
 _cameras: dict = {}
+# Threads of the finiteness check: enough to keep a large GPU's memory busy, each looping over
+# its share (one thread per value cost ~0.4 ms more at 3M Gaussians on an H100).
+_CHECK_THREADS = 1 << 18
 
 
 def _check_camera(viewmat, K, width, height, near_plane):
@@ -415,9 +418,10 @@ def rasterize(
         # with the intersection count below, so validation costs no extra host synchronisation).
         nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
         flat = [t.view(-1) for t in checked.values()]
+        threads = min(max(t.numel() for t in flat), _CHECK_THREADS)
         wp.launch(
-            find_nonfinite_kernel, max(t.numel() for t in flat),
-            inputs=[_arg(t, wp.float32) for t in flat], outputs=[_arg(nonfinite, wp.int32)],
+            find_nonfinite_kernel, threads,
+            inputs=[*(_arg(t, wp.float32) for t in flat), threads], outputs=[_arg(nonfinite, wp.int32)],
         )  # fmt: skip
 
         means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased)

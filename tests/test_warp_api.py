@@ -119,3 +119,24 @@ def test_launch_arguments_do_not_keep_tensors_alive():
     del tensor
     gc.collect()
     assert alive() is None
+
+
+@pytest.mark.parametrize("threads", [1, 3, 64])
+def test_nonfinite_check_strides_over_every_value(device, threads):
+    """Each thread of ``find_nonfinite_kernel`` walks its share of every input; whatever the launch
+    size, exactly the inputs holding a NaN or an infinity are flagged (numpy decides)."""
+    import warp as wp
+
+    from cdcgs.kernels.checks import find_nonfinite_kernel
+
+    rng = np.random.default_rng(4)
+    for trial in range(6):
+        inputs = [rng.normal(size=int(rng.integers(1, 50))).astype(np.float32) for _ in range(6)]
+        for values in inputs:
+            if rng.random() < 0.5:
+                values[rng.integers(len(values))] = rng.choice([np.nan, np.inf, -np.inf])
+        flags = wp.zeros(6, dtype=wp.int32, device=device)
+        arrays = [wp.array(v, dtype=wp.float32, device=device) for v in inputs]
+        wp.launch(find_nonfinite_kernel, threads, inputs=[*arrays, threads], outputs=[flags], device=device)
+        expected = [int(not np.isfinite(v).all()) for v in inputs]
+        assert flags.numpy().tolist() == expected, trial
