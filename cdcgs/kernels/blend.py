@@ -1,8 +1,11 @@
 """Front-to-back alpha compositing of depth-sorted Gaussians per 16x16 tile, and its adjoint.
 
-Pure Warp. One thread per pixel, 256 threads (one tile) per block. The backward pass is written
-by hand: it walks each pixel's list back to front from the last contributor the forward pass
-stored, recovering transmittance by division, and accumulates per-Gaussian gradients with atomics.
+Pure Warp. One thread per pixel, 256 threads (one tile) per block (launch with block_dim=256).
+Both passes walk the tile's list in batches of 256 Gaussians; on CUDA the block loads each batch
+into shared memory together (``lanes.tile_cache``), on the CPU each pixel reads global memory. The
+backward pass is written by hand: it walks each pixel's list back to front from the last
+contributor the forward pass stored, recovering transmittance by division, sums each Gaussian's
+gradients over the warp in registers and lets one lane add them with atomics.
 """
 
 import warp as wp
