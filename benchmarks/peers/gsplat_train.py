@@ -30,8 +30,7 @@ Ours, so that the two runs differ in renderer and densification only:
 - timing as ``Trainer.run``: perf_counter around each whole step (schedule, render, loss,
   backward, the loss/PSNR read-back, strategy, optimizer), summed, no extra synchronisation;
   set-up, progress output and evaluation outside. Peak memory: reset after set-up, read after the
-  final evaluation. Evaluation: ``cdcgs.train.evaluate.evaluate`` itself, with its
-  ``render_view`` swapped for gsplat's render while it runs.
+  final evaluation. Evaluation: ``cdcgs.train.evaluate.evaluate`` itself, given gsplat's render.
 
 Where it differs from our trainer: the densification is gsplat's (the point), and so are its
 place in the step (after the optimizer step; ours runs before it), its 0-based step, the SH and
@@ -46,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import json
 import math
 import os
@@ -54,7 +52,6 @@ import random
 import sys
 import time
 from types import SimpleNamespace
-from unittest import mock
 
 import numpy as np
 import torch
@@ -65,6 +62,7 @@ wp.config.log_level = wp.LOG_WARNING  # before cdcgs initialises Warp: no banner
 
 from cdcgs.errors import InputError
 from cdcgs.io import GaussianPly, load_scene, scene_extent, write_ply
+from cdcgs.train.evaluate import evaluate
 from cdcgs.train.loss import photometric_loss, psnr
 from cdcgs.train.model import GaussianModel
 
@@ -141,16 +139,14 @@ def make_renderer(rasterization, params: dict, absgrad: bool):
 
 
 def evaluate_with(render, params: dict, views, sh_degree: int, device: torch.device) -> dict:
-    """``cdcgs.train.evaluate.evaluate`` itself on ``views``, its ``render_view`` swapped for ``render``."""
-    module = importlib.import_module("cdcgs.train.evaluate")
+    """``cdcgs.train.evaluate.evaluate`` itself on ``views``, drawing them with ``render``."""
     cameras = {id(v): (v.viewmat[None].to(device), v.K[None].to(device)) for v in views}
 
     def render_view(_model, view, background, antialiased=False):
         return render(view, *cameras[id(view)], sh_degree, background)
 
     model = SimpleNamespace(device=device, num=params["means"].shape[0])
-    with mock.patch.object(module, "render_view", render_view):
-        return module.evaluate(model, views, background=torch.zeros(3, device=device))
+    return evaluate(model, views, background=torch.zeros(3, device=device), render=render_view)
 
 
 def train(args, api: SimpleNamespace, device: torch.device) -> int:
