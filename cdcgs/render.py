@@ -7,7 +7,7 @@ torch's memory directly (``wp.from_torch``) on torch's current CUDA stream.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -18,7 +18,7 @@ from .interop import warp_scope as _warp_scope
 from .interop import wp_arg as _arg
 from .interop import wp_array as _wp
 from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
-from .kernels.blend import blend_backward_kernel, blend_forward_kernel
+from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .kernels.checks import find_nonfinite_kernel
 from .kernels.projection import (
     Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel,
@@ -51,7 +51,7 @@ class RasterizeInfo:
         depth: [H, W] expected depth (sum of weight x depth / alpha, 0 where alpha is 0) when
             ``render_depth`` was asked for, else None. Differentiable.
         means2d_absgrad: [N, 2] sum over pixels of |d loss / d means2d| per pixel (AbsGS), filled
-            by the backward pass.
+            by the backward pass when :meth:`retain_absgrad` asked for it before; else None.
     """
 
     width: int
@@ -71,7 +71,18 @@ class RasterizeInfo:
     last_contributor: torch.Tensor
     transmittance: torch.Tensor
     depth: torch.Tensor | None
-    means2d_absgrad: torch.Tensor
+    _absgrad: dict = field(default_factory=dict, repr=False)  # shared with the blend's backward pass
+
+    @property
+    def means2d_absgrad(self) -> torch.Tensor | None:
+        return self._absgrad.get("sums")
+
+    def retain_absgrad(self) -> torch.Tensor:
+        """Ask the next ``backward`` to fill ``means2d_absgrad`` (AbsGS), like ``retain_grad()``; the
+        backward pass skips these sums otherwise. Returns the [N, 2] tensor it will fill."""
+        if "sums" not in self._absgrad:
+            self._absgrad["sums"] = self.means2d.new_zeros(self.means2d.shape[0], 2)
+        return self._absgrad["sums"]
 
     def positional_gradient(self, absolute: bool = False) -> torch.Tensor:
         """[N] norm of the screen-space positional gradient of this view in NDC units (3DGS).
@@ -82,6 +93,8 @@ class RasterizeInfo:
         """
         if absolute:
             grad = self.means2d_absgrad
+            if grad is None:
+                raise RuntimeError("call info.retain_absgrad() before backward() to read the absolute positional gradient")
         else:
             grad = self.means2d.grad
             if grad is None:
@@ -154,23 +167,23 @@ def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tenso
 
 class _ShColor(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, sh, sh_degree: int, camera_center, radii):
+    def forward(ctx, means, sh, sh_degree: int, camera_center, radii, nonfinite):
         colors = means.new_empty(means.shape[0], 3)
         with _warp_scope(means.device):
             wp.launch(
                 sh_to_color_kernel,
                 means.shape[0],
                 inputs=[_arg(means, wp.vec3), _arg(sh, wp.vec3), sh_degree, camera_center, _arg(radii, wp.vec2i)],
-                outputs=[_arg(colors, wp.vec3)],
+                outputs=[_arg(colors, wp.vec3), _arg(nonfinite, wp.int32)],
             )
-        ctx.save_for_backward(means, sh, radii)
+        ctx.save_for_backward(means, sh, radii, colors)
         ctx.sh_degree = sh_degree
         ctx.camera_center = camera_center
         return colors
 
     @staticmethod
     def backward(ctx, grad_colors):
-        means, sh, radii = ctx.saved_tensors
+        means, sh, radii, colors = ctx.saved_tensors
         grad_means = torch.empty_like(means)
         grad_sh = torch.empty_like(sh)
         grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
@@ -181,16 +194,16 @@ class _ShColor(torch.autograd.Function):
                 means.shape[0] * (16 if grouped else 1),
                 inputs=[
                     _arg(means, wp.vec3), _arg(sh, wp.vec3), ctx.sh_degree, ctx.camera_center, _arg(radii, wp.vec2i),
-                    _arg(grad_colors, wp.vec3),
+                    _arg(colors, wp.vec3), _arg(grad_colors, wp.vec3),
                 ],  # fmt: skip
                 outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3)],
             )
-        return grad_means, grad_sh, None, None, None
+        return grad_means, grad_sh, None, None, None, None
 
 
 class _Blend(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, depths, background, bins: TileBins, width, height, absgrad_out):
+    def forward(ctx, means2d, conics, colors, opacities, depths, background, bins: TileBins, width, height, absgrad_request):
         device = means2d.device
         image = means2d.new_empty(height, width, 3)
         transmittance = means2d.new_empty(height, width)
@@ -210,8 +223,9 @@ class _Blend(torch.autograd.Function):
             )
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, transmittance, last)
         ctx.bins = bins
-        ctx.absgrad_out = absgrad_out
+        ctx.absgrad_request = absgrad_request
         ctx.mark_non_differentiable(last)
+        ctx.set_materialize_grads(False)  # an output the loss does not use gets None, not zeros
         return image, transmittance, depth_sum, last
 
     @staticmethod
@@ -222,29 +236,42 @@ class _Blend(torch.autograd.Function):
         grad_image = _grad_or_zeros(grad_image, means2d.new_empty(height, width, 3))
         # alpha = 1 - transmittance: a gradient on transmittance is minus one on alpha.
         grad_alpha = -_grad_or_zeros(grad_transmittance, transmittance)
-        grad_depth_sum = _grad_or_zeros(grad_depth_sum, transmittance)
-        grads = [torch.zeros_like(t) for t in (means2d, conics, colors, opacities, depths)]
-        absgrad = ctx.absgrad_out
+        n = means2d.shape[0]
+        # The depth gradients and the AbsGS sums cost a sixth of the kernel: only when the loss
+        # uses the depth sum or ``info.retain_absgrad()`` asked for the sums.
+        absgrad = ctx.absgrad_request.get("sums")
+        sums = grad_depth_sum is not None or absgrad is not None
+        if sums:
+            grad_depth_sum = _grad_or_zeros(grad_depth_sum, transmittance)
+            if absgrad is None:
+                absgrad = means2d.new_zeros(n, 2)
+        # One zero fill for all the gradients the kernel adds to: [means2d | conics | colors | opacities (| depths)].
+        sizes = [2 * n, 3 * n, 3 * n, n] + ([n] if sums else [])
+        grads = [part.view(t.shape) for part, t in zip(means2d.new_zeros(sum(sizes)).split(sizes), (means2d, conics, colors, opacities, depths))]
+        grad_outputs = [*_blend_gaussian_inputs(*grads[:4], grads[4] if sums else None), _arg(absgrad, wp.vec2) if sums else None]
         with _warp_scope(means2d.device):
             wp.launch(
-                blend_backward_kernel,
+                blend_backward_kernel if sums else blend_backward_lean_kernel,
                 bins.tiles_x * bins.tiles_y * TILE_SIZE * TILE_SIZE,
                 inputs=[
                     bins.tile_ranges, bins.gauss_ids,
                     *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
                     _arg(background, wp.vec3), width, height, bins.tiles_x,
                     _arg(transmittance, wp.float32), _arg(last, wp.int32),
-                    _arg(grad_image, wp.vec3), _arg(grad_alpha, wp.float32), _arg(grad_depth_sum, wp.float32),
+                    _arg(grad_image, wp.vec3), _arg(grad_alpha, wp.float32), _arg(grad_depth_sum, wp.float32) if sums else None,
                 ],  # fmt: skip
-                outputs=[*_blend_gaussian_inputs(*grads), _arg(absgrad, wp.vec2)],
+                outputs=grad_outputs,
                 block_dim=TILE_SIZE * TILE_SIZE,
             )
+        if not sums:
+            grads.append(None)  # no gradient reaches the depths
         grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
         return (*grads, grad_background, None, None, None, None)
 
 
 def _blend_gaussian_inputs(means2d, conics, colors, opacities, depths):
-    return [_arg(means2d, wp.vec2), _arg(conics, wp.vec3), _arg(colors, wp.vec3), _arg(opacities, wp.float32), _arg(depths, wp.float32)]
+    depths = None if depths is None else _arg(depths, wp.float32)
+    return [_arg(means2d, wp.vec2), _arg(conics, wp.vec3), _arg(colors, wp.vec3), _arg(opacities, wp.float32), depths]
 
 
 # --------------------------------------------------------------------------------------------
@@ -371,8 +398,9 @@ def rasterize(
         image [H, W, 3], alpha [H, W] and a :class:`RasterizeInfo`. All float32 on ``means``' device.
 
     Raises:
-        ValueError: an argument of the wrong type, dtype, shape or device, non-finite values, an
-            empty scene or an empty image; the message names the argument.
+        ValueError: an argument of the wrong type, dtype, shape or device, non-finite values (in
+            ``sh``: those of the Gaussians in view, the only ones read), an empty scene or an empty
+            image; the message names the argument.
     """
     means = _check_tensor("means", means, (None, 3), None)
     device = means.device
@@ -416,8 +444,12 @@ def rasterize(
         checked["sh" if sh is not None else "colors"] = sh if sh is not None else colors
         # One kernel flags the tensors holding NaN or inf (each read once, coalesced; the flags travel
         # with the intersection count below, so validation costs no extra host synchronisation).
+        # ``sh``, most of the bytes, is checked by the colouring kernel where it reads it instead:
+        # only the coefficients of Gaussians in view reach the image.
         nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
         flat = [t.view(-1) for t in checked.values()]
+        if sh is not None:
+            flat[-1] = flat[-1][:0]
         threads = min(max(t.numel() for t in flat), _CHECK_THREADS)
         wp.launch(
             find_nonfinite_kernel, threads,
@@ -427,7 +459,8 @@ def rasterize(
         means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased)
         if sh is not None:
             center = camera.center
-            colors = _ShColor.apply(means, sh, sh_degree, wp.vec3(center[0], center[1], center[2]), radii)
+            center = wp.vec3(center[0], center[1], center[2])
+            colors = _ShColor.apply(means, sh, sh_degree, center, radii, nonfinite[len(checked) - 1 :])
 
         def read_count(tile_offsets: wp.array) -> int:
             # The single host synchronisation of a render: the intersection count sizes the sort
@@ -449,9 +482,9 @@ def rasterize(
             zeros=zeros,
             read_count=read_count,
         )
-        absgrad = means.new_zeros(n, 2)
+        absgrad_request = {}  # info.retain_absgrad() puts the AbsGS sums' tensor here for the backward pass
         image, transmittance, depth_sum, last = _Blend.apply(
-            means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad
+            means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad_request
         )
     alpha = 1.0 - transmittance
     depth = None
@@ -475,6 +508,6 @@ def rasterize(
         last_contributor=last,
         transmittance=transmittance,
         depth=depth,
-        means2d_absgrad=absgrad,
+        _absgrad=absgrad_request,
     )
     return image, alpha, info

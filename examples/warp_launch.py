@@ -49,7 +49,7 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
         sh_to_color_kernel,
         dim=n,
         inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), sh_degree, camera.center, radii],
-        outputs=[colors],
+        outputs=[colors, None],  # None: no finiteness flag
         device=device,
     )
     bins = bin_gaussians(means2d, radii, depths, width, height)

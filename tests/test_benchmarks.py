@@ -40,6 +40,7 @@ def make_scene(n, device="cpu"):
         ("void cub::DeviceRadixSortOnesweepKernel<cub::DeviceRadixSortPolicy>", "binning + sort"),
         ("blend_forward_kernel_66825d96_cuda_kernel_forward", "blend forward"),
         ("blend_backward_kernel_30912936_cuda_kernel_forward", "blend backward"),
+        ("_blend_backward__locals__blend_backward_kernel_762ac5e6_cuda_kernel_forward", "blend backward"),
         ("void gsplat::projection_ewa_3dgs_fused_fwd_kernel<float>(...)", "projection"),
         ("void gsplat::projection_ewa_3dgs_fused_bwd_kernel<float>(...)", "projection backward"),
         ("void gsplat::spherical_harmonics_bwd_kernel<float>(...)", "sh colour backward"),

@@ -147,6 +147,7 @@ def test_positional_gradient_is_ndc_scaled_means2d_gradient(device):
     tensors = [t.to(device).requires_grad_() for t in scene.tensors()]
     image, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=48, height=32)
     info.means2d.retain_grad()
+    info.retain_absgrad()
     target = torch.rand(32, 48, 3, generator=torch.Generator().manual_seed(1)).to(device)
     (image - target).abs().mean().backward()
     grad = info.means2d.grad.cpu().double()
@@ -159,12 +160,36 @@ def test_positional_gradient_is_ndc_scaled_means2d_gradient(device):
     assert (absgrad[~info.visible.cpu()] == 0).all()
 
 
+def test_backward_without_sums_gives_the_same_gradients(device):
+    """Without ``retain_absgrad()`` and a depth term in the loss the backward pass runs the blend
+    adjoint without those sums (``blend_backward_lean_kernel``): the parameters' gradients must not
+    change, ``means2d_absgrad`` stays None and asking for the AbsGS gradient says what to call."""
+    scene = make_scene(60, 40, 24, sh_degree=1, seed=9, hard_cases=False)
+    target = torch.rand(24, 40, 3, generator=torch.Generator().manual_seed(3)).to(device)
+    grads = []
+    for sums in (False, True):
+        tensors = [t.to(device).requires_grad_() for t in scene.tensors()]
+        image, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=40, height=24)
+        if sums:
+            info.retain_absgrad()
+        ((image - target) ** 2).mean().backward()
+        assert (info.means2d_absgrad is not None) == sums
+        grads.append([t.grad for t in tensors])
+    with pytest.raises(RuntimeError, match="retain_absgrad"):
+        tensors = [t.to(device) for t in scene.tensors()]
+        cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=40, height=24)[2].positional_gradient(absolute=True)
+    for lean, full in zip(*grads):
+        assert full.abs().max() > 0
+        torch.testing.assert_close(lean, full, atol=1e-6 * full.abs().max().item(), rtol=1e-5)
+
+
 def test_absgrad_matches_reference(device):
     """The AbsGS accumulator equals the sum over pixels of |per-pixel gradient of the 2D mean|."""
     scene = make_scene(30, 32, 32, sh_degree=0, seed=6, hard_cases=False)
     weights = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(2))
     tensors = [t.to(device).requires_grad_() for t in scene.tensors()]
     image, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=32, height=32)
+    info.retain_absgrad()
     (image * weights.to(device)).sum().backward()
     # Reference: per-pixel gradient of each pixel's loss term with respect to the 2D means.
     d = [t.double() for t in scene.tensors()]

@@ -47,7 +47,7 @@ def fake_info(grad_pixels: torch.Tensor, visible: torch.Tensor, radius: torch.Te
     means2d.grad = grad_pixels
     return SimpleNamespace(
         means2d=means2d, visible=visible, radii=torch.stack([radius, radius], -1).int(), width=width, height=height,
-        means2d_absgrad=grad_pixels.abs() * 2,
+        means2d_absgrad=grad_pixels.abs() * 2, retain_absgrad=lambda: None,
         positional_gradient=lambda absolute=False: ((grad_pixels.abs() * 2 if absolute else grad_pixels) * torch.tensor([width / 2, height / 2])).norm(dim=-1),
     )  # fmt: skip
 

@@ -52,6 +52,25 @@ def test_non_finite_values(args, name, value):
         call({**tensors, name: broken}, camera)
 
 
+def test_sh_is_checked_where_it_is_read(args):
+    """The colouring kernel validates ``sh`` as it reads it: a NaN in a Gaussian in view raises, one
+    in a culled Gaussian (never read, never in the image) does not change the render."""
+    tensors, camera = args
+    opacities = tensors["opacities"].clone()
+    opacities[5] = 0.0  # cannot reach alpha 1/255: culled
+    tensors = {**tensors, "opacities": opacities}
+    image, _, info = call(tensors, camera)
+    assert not info.visible[5] and info.visible[6]
+    for g, raises in ((5, False), (6, True)):
+        broken = tensors["sh"].clone()
+        broken[g, 1, 2] = float("nan")
+        if raises:
+            with pytest.raises(ValueError, match="sh has non-finite values"):
+                call({**tensors, "sh": broken}, camera)
+        else:
+            assert torch.equal(call({**tensors, "sh": broken}, camera)[0], image)
+
+
 @pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "sh", "colors"])
 def test_non_finite_last_value_is_found(args, name):
     """The check runs one thread per value of the longest input; every input's last value counts."""

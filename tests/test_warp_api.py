@@ -51,16 +51,17 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         culled = np.arange(n) % 5 == 0
         radii = wp.array(np.repeat(np.where(culled, 0, 3)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device)
         colors = wp.empty(n, dtype=wp.vec3, device=device)
-        wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors], device=device)
+        wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device)
         assert (colors.numpy()[culled] == 0).all() and (colors.numpy()[~culled] > 0).any()
         generated = wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros((n, 16), dtype=wp.vec3, device=device)
         wp.launch(
-            sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors],
-            adj_inputs=[*generated, 0, wp.vec3(), None], adj_outputs=[grad_colors], adjoint=True, device=device,
+            sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None],
+            adj_inputs=[*generated, 0, wp.vec3(), None], adj_outputs=[grad_colors, None], adjoint=True, device=device,
         )  # fmt: skip
         written = wp.empty(n, dtype=wp.vec3, device=device), wp.empty((n, 16), dtype=wp.vec3, device=device)
         wp.launch(
-            sh_to_color_backward_kernel, n, inputs=[means, sh, degree, center, radii, grad_colors], outputs=list(written), device=device
+            sh_to_color_backward_kernel, n, inputs=[means, sh, degree, center, radii, colors, grad_colors], outputs=list(written),
+            device=device,
         )
         for name, ours, theirs in zip(("means", "sh"), written, generated):
             assert np.abs(theirs.numpy()).max() > 0 or (name == "means" and degree == 0)  # degree 0 ignores the direction
@@ -76,7 +77,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
         pytest.skip("the grouped SH adjoint uses warp shuffles: CUDA only")
     import warp as wp
 
-    from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel
+    from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel, sh_to_color_kernel
 
     rng = np.random.default_rng(1)
     n = 77  # odd: the last warp holds one Gaussian
@@ -85,9 +86,15 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
     for degree in range(4):
         for stored in sorted({(degree + 1) ** 2, 16}):
             means = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
-            sh = wp.array(0.3 * rng.normal(size=(n, stored, 3)).astype(np.float32), dtype=wp.vec3, device=device)
+            coefficients = 0.3 * rng.normal(size=(n, stored, 3)).astype(np.float32)
+            coefficients[::4, 0, 1] = -6.0  # these green channels clamp at 0: their gradient is cut
+            sh = wp.array(coefficients, dtype=wp.vec3, device=device)
             grad_colors = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
             center = wp.vec3(0.1, -0.2, 3.0)
+            colors = wp.empty(n, dtype=wp.vec3, device=device)
+            wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device)
+            clamped = (np.arange(n) % 4 == 0) & ~culled
+            assert (colors.numpy()[clamped, 1] == 0).all() and (colors.numpy()[~culled] > 0).any()
             outputs = {}
             for name, backward, dim in (
                 ("per gaussian", sh_to_color_backward_kernel, n),
@@ -95,11 +102,50 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             ):
                 grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grad_sh = wp.full((n, stored), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                wp.launch(backward, dim, inputs=[means, sh, degree, center, radii, grad_colors], outputs=[grads, grad_sh], device=device)
+                inputs = [means, sh, degree, center, radii, colors, grad_colors]
+                wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_sh], device=device)
                 outputs[name] = (grads.numpy(), grad_sh.numpy())
             for ours, theirs in zip(outputs["grouped"], outputs["per gaussian"]):
                 assert (theirs != 7.0).all()  # every entry written
                 np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=1e-4)
+
+
+def test_lean_blend_adjoint_equals_the_full_one(device):
+    """``blend_backward_lean_kernel`` (what ``rasterize`` runs when neither the depth sum nor the
+    AbsGS sums are wanted) gives the full adjoint's gradients for means, conics, colours and
+    opacities, and leaves the depth and AbsGS outputs alone."""
+    import warp as wp
+
+    from cdcgs.kernels import TILE_SIZE, blend_backward_kernel, blend_backward_lean_kernel
+    from conftest import make_scene
+
+    scene = make_scene(80, 40, 24, sh_degree=1, seed=4, hard_cases=False)
+    tensors = [t.to(device) for t in scene.tensors()]
+    _, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=40, height=24)
+    h, w = 24, 40
+    arr = lambda t, dtype: wp.from_torch(t.detach().contiguous(), dtype=dtype)
+    rng = torch.Generator().manual_seed(5)
+    grad_image, grad_alpha = torch.randn(h, w, 3, generator=rng).to(device), torch.randn(h, w, generator=rng).to(device)
+    inputs = [
+        arr(info.tile_ranges.view(-1, 2), wp.int32), arr(info.sorted_gauss_ids, wp.int32), arr(info.means2d, wp.vec2),
+        arr(info.conics, wp.vec3), arr(info.colors, wp.vec3), arr(info.opacities, wp.float32), arr(info.depths, wp.float32),
+        wp.array([wp.vec3(0.2, 0.3, 0.4)], dtype=wp.vec3, device=device), w, h, info.tile_ranges.shape[1],
+        arr(info.transmittance, wp.float32), arr(info.last_contributor, wp.int32), arr(grad_image, wp.vec3),
+        arr(grad_alpha, wp.float32), wp.zeros((h, w), dtype=float, device=device),
+    ]  # fmt: skip
+    n = info.means2d.shape[0]
+    results = {}
+    for name, kernel in (("full", blend_backward_kernel), ("lean", blend_backward_lean_kernel)):
+        outputs = [wp.zeros(n, dtype=t, device=device) for t in (wp.vec2, wp.vec3, wp.vec3, float)]
+        outputs += [wp.full(n, 7.0, dtype=float, device=device), wp.full(n, wp.vec2(7.0, 7.0), dtype=wp.vec2, device=device)]
+        dim = info.tile_ranges.shape[0] * info.tile_ranges.shape[1] * TILE_SIZE * TILE_SIZE
+        wp.launch(kernel, dim, inputs=inputs, outputs=outputs, block_dim=TILE_SIZE * TILE_SIZE, device=device)
+        results[name] = [o.numpy() for o in outputs]
+    for full, lean in zip(results["full"][:4], results["lean"][:4]):
+        assert np.abs(full).max() > 0
+        np.testing.assert_allclose(lean, full, atol=1e-6 * np.abs(full).max(), rtol=1e-5)
+    assert (results["lean"][4] == 7.0).all() and (results["lean"][5] == 7.0).all()
+    assert (results["full"][5] != 7.0).any()
 
 
 def test_launch_arguments_do_not_keep_tensors_alive():

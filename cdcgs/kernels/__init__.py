@@ -1,7 +1,7 @@
 """Pure-Warp kernels of cdcgs: usable with ``wp.launch`` and Warp arrays alone, no torch needed."""
 
 from .binning import TILE_SIZE, TileBins, bin_gaussians, count_tiles_kernel, emit_keys_kernel, tile_ranges_kernel
-from .blend import blend_backward_kernel, blend_forward_kernel
+from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .projection import (
     Camera,
     make_camera,
@@ -17,6 +17,7 @@ __all__ = [
     "TileBins",
     "bin_gaussians",
     "blend_backward_kernel",
+    "blend_backward_lean_kernel",
     "blend_forward_kernel",
     "count_tiles_kernel",
     "emit_keys_kernel",

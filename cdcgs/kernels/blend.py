@@ -2,7 +2,7 @@
 
 Pure Warp. One thread per pixel, 256 threads (one tile) per block (launch with block_dim=256).
 Both passes walk the tile's list in batches of 256 Gaussians; on CUDA the block loads each batch
-into shared memory together (``lanes.tile_cache``), on the CPU each pixel reads global memory. The
+into shared memory together (``lanes.tile_batch``), on the CPU each pixel reads global memory. The
 backward pass is written by hand: it walks each pixel's list back to front from the last
 contributor the forward pass stored, recovering transmittance by division, sums each Gaussian's
 gradients over the warp in registers and lets one lane add them with atomics.
@@ -11,8 +11,8 @@ gradients over the warp in registers and lets one lane add them with atomics.
 import warp as wp
 
 from .lanes import (
-    CACHE_COUNT, CACHE_LOAD, CACHE_STORE, CACHE_SYNC, block_max_int, lane_any, lane_leads, lane_max, lane_max_int,
-    lane_sum, lane_sum_vec2, lane_sum_vec3, on_cuda, tile_cache, tile_ids,
+    BATCH_FIELDS, BATCH_LOAD, BATCH_STORE, block_count, block_max_int, block_sync, lane_any, lane_leads, lane_max,
+    lane_max_int, lane_sum, lane_sum_vec2, lane_sum_vec3, on_cuda, tile_batch, tile_ids,
 )
 from .projection import ALPHA_THRESHOLD
 
@@ -52,6 +52,48 @@ def splat_alpha(mean: wp.vec2, conic: wp.vec3, opacity: float, px: float, py: fl
 
 
 @wp.func
+def gaussian_field(
+    field: int,
+    g: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    depths: wp.array(dtype=float),
+):
+    """Gaussian ``g`` packed as the blend passes read it: field 0 (mean x, mean y, conic a, conic b),
+    1 (conic c, opacity, 0, 0), 2 (colour r, g, b, depth). Fields 0 and 1 decide whether it
+    composites at a pixel, field 2 is read only where it does."""
+    if field == 0:
+        m = means2d[g]
+        q = conics[g]
+        return wp.vec4(m[0], m[1], q[0], q[1])
+    if field == 1:
+        return wp.vec4(conics[g][2], opacities[g], 0.0, 0.0)
+    c = colors[g]
+    return wp.vec4(c[0], c[1], c[2], depths[g])
+
+
+@wp.func
+def batch_field(
+    staged: int,
+    field: int,
+    slot: int,
+    g: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    depths: wp.array(dtype=float),
+):
+    """``gaussian_field`` of the Gaussian in ``slot`` of the staged batch (CUDA), or of Gaussian ``g``
+    read from global memory (CPU)."""
+    if staged != 0:
+        return tile_batch(BATCH_LOAD, field * 256 + slot, wp.vec4())
+    return gaussian_field(field, g, means2d, conics, colors, opacities, depths)
+
+
+@wp.func
 def stage_gaussian(
     slot: int,
     g: int,
@@ -61,20 +103,16 @@ def stage_gaussian(
     opacities: wp.array(dtype=float),
     depths: wp.array(dtype=float),
 ):
-    """Copy Gaussian ``g`` into ``slot`` of the block's shared cache (CUDA; fields 256 floats apart)."""
-    m = means2d[g]
-    q = conics[g]
-    c = colors[g]
-    tile_cache(CACHE_STORE, slot, m[0])
-    tile_cache(CACHE_STORE, 256 + slot, m[1])
-    tile_cache(CACHE_STORE, 512 + slot, q[0])
-    tile_cache(CACHE_STORE, 768 + slot, q[1])
-    tile_cache(CACHE_STORE, 1024 + slot, q[2])
-    tile_cache(CACHE_STORE, 1280 + slot, opacities[g])
-    tile_cache(CACHE_STORE, 1536 + slot, c[0])
-    tile_cache(CACHE_STORE, 1792 + slot, c[1])
-    tile_cache(CACHE_STORE, 2048 + slot, c[2])
-    tile_cache(CACHE_STORE, 2304 + slot, depths[g])
+    """Copy Gaussian ``g`` into ``slot`` of the block's shared batch (CUDA)."""
+    tile_ids(BATCH_STORE, slot, g)
+    for field in range(BATCH_FIELDS):
+        tile_batch(BATCH_STORE, field * 256 + slot, gaussian_field(field, g, means2d, conics, colors, opacities, depths))
+
+
+@wp.func
+def shape_alpha(shape: wp.vec4, extra: wp.vec4, px: float, py: float):
+    """``splat_alpha`` of a Gaussian given as fields 0 and 1."""
+    return splat_alpha(wp.vec2(shape[0], shape[1]), wp.vec3(shape[2], shape[3], extra[0]), extra[1], px, py)
 
 
 @wp.kernel(enable_backward=False)
@@ -124,42 +162,32 @@ def blend_forward_kernel(
     while batch < end:
         count = wp.min(256, end - batch)
         if staged != 0:
-            if tile_cache(CACHE_COUNT, 0, float(done)) >= 256.0:
+            if block_count(done) >= 256:
                 break
             if local < count:
                 stage_gaussian(local, sorted_gauss_ids[batch + local], means2d, conics, colors, opacities, depths)
-            tile_cache(CACHE_SYNC, 0, 0.0)
+            block_sync()
         if done == 0:
             for j in range(count):
                 g = int(0)
-                if staged != 0:
-                    mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
-                    conic = wp.vec3(tile_cache(CACHE_LOAD, 512 + j, 0.0), tile_cache(CACHE_LOAD, 768 + j, 0.0), tile_cache(CACHE_LOAD, 1024 + j, 0.0))
-                    opacity = tile_cache(CACHE_LOAD, 1280 + j, 0.0)
-                else:
+                if staged == 0:
                     g = sorted_gauss_ids[batch + j]
-                    mean = means2d[g]
-                    conic = conics[g]
-                    opacity = opacities[g]
-                alpha = splat_alpha(mean, conic, opacity, px, py)
+                shape = batch_field(staged, 0, j, g, means2d, conics, colors, opacities, depths)
+                extra = batch_field(staged, 1, j, g, means2d, conics, colors, opacities, depths)
+                alpha = shape_alpha(shape, extra, px, py)
                 if alpha > 0.0:
                     next_transmittance = transmittance * (1.0 - alpha)
                     if next_transmittance < MIN_TRANSMITTANCE:
                         done = 1
                         break
-                    if staged != 0:
-                        gauss_color = wp.vec3(tile_cache(CACHE_LOAD, 1536 + j, 0.0), tile_cache(CACHE_LOAD, 1792 + j, 0.0), tile_cache(CACHE_LOAD, 2048 + j, 0.0))
-                        z = tile_cache(CACHE_LOAD, 2304 + j, 0.0)
-                    else:
-                        gauss_color = colors[g]
-                        z = depths[g]
+                    look = batch_field(staged, 2, j, g, means2d, conics, colors, opacities, depths)
                     weight = alpha * transmittance
-                    color += weight * gauss_color
-                    depth += weight * z
+                    color += weight * wp.vec3(look[0], look[1], look[2])
+                    depth += weight * look[3]
                     transmittance = next_transmittance
                     last = batch + j
         if staged != 0:
-            tile_cache(CACHE_SYNC, 0, 0.0)  # the batch is read before the next one overwrites it
+            block_sync()  # the batch is read before the next one overwrites it
         elif done != 0:
             break
         batch += 256
@@ -171,155 +199,163 @@ def blend_forward_kernel(
         last_contributor_out[y, x] = last
 
 
-# 3 blocks of 256 per SM: at most 85 registers (unbounded it takes about 104, which allows 2 blocks).
-@wp.kernel(enable_backward=False, launch_bounds=(256, 3))
-def blend_backward_kernel(
-    tile_ranges: wp.array2d(dtype=wp.int32),
-    sorted_gauss_ids: wp.array(dtype=wp.int32),
-    means2d: wp.array(dtype=wp.vec2),
-    conics: wp.array(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    depths: wp.array(dtype=float),
-    background: wp.array(dtype=wp.vec3),
-    width: int,
-    height: int,
-    tiles_x: int,
-    transmittance: wp.array2d(dtype=float),
-    last_contributor: wp.array2d(dtype=wp.int32),
-    grad_image: wp.array2d(dtype=wp.vec3),
-    grad_alpha: wp.array2d(dtype=float),
-    grad_depth: wp.array2d(dtype=float),
-    grad_means2d_out: wp.array(dtype=wp.vec2),
-    grad_conics_out: wp.array(dtype=wp.vec3),
-    grad_colors_out: wp.array(dtype=wp.vec3),
-    grad_opacities_out: wp.array(dtype=float),
-    grad_depths_out: wp.array(dtype=float),
-    absgrad_means2d_out: wp.array(dtype=wp.vec2),
-):
-    """Adjoint of ``blend_forward_kernel`` for image, alpha (= 1 - transmittance) and depth sum.
+def _blend_backward(sums: bool):
+    """The blend adjoint; with ``sums`` False it leaves out the depth gradients and the AbsGS sums
+    (for a loss that does not use the depth and a strategy that does not read the sums: a sixth of
+    its time on an H100 goes to their warp sums and atomics)."""
 
-    Also accumulates, per Gaussian, the sum over pixels of the absolute per-pixel gradient of its
-    2D mean (AbsGS).
+    # 4 blocks of 256 per SM: at most 64 registers (what the kernel without sums needs; 48 spill).
+    @wp.kernel(enable_backward=False, launch_bounds=(256, 4))
+    def blend_backward_kernel(
+        tile_ranges: wp.array2d(dtype=wp.int32),
+        sorted_gauss_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        colors: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        depths: wp.array(dtype=float),
+        background: wp.array(dtype=wp.vec3),
+        width: int,
+        height: int,
+        tiles_x: int,
+        transmittance: wp.array2d(dtype=float),
+        last_contributor: wp.array2d(dtype=wp.int32),
+        grad_image: wp.array2d(dtype=wp.vec3),
+        grad_alpha: wp.array2d(dtype=float),
+        grad_depth: wp.array2d(dtype=float),
+        grad_means2d_out: wp.array(dtype=wp.vec2),
+        grad_conics_out: wp.array(dtype=wp.vec3),
+        grad_colors_out: wp.array(dtype=wp.vec3),
+        grad_opacities_out: wp.array(dtype=float),
+        grad_depths_out: wp.array(dtype=float),
+        absgrad_means2d_out: wp.array(dtype=wp.vec2),
+    ):
+        """Adjoint of ``blend_forward_kernel`` for image, alpha (= 1 - transmittance) and depth sum.
 
-    The 32 lanes of a warp (two rows of one tile) walk the tile's list together, from the last
-    contributor of any of them down to the tile's start; a lane whose pixel the Gaussian does not
-    touch adds zeros. Each Gaussian's gradients are summed over the warp in registers and one lane
-    adds them to global memory (``lanes``), so no lane may leave the loop early.
-    """
-    tid = wp.tid()
-    pix = tile_pixel(tid, tiles_x)
-    local = tid % 256
-    x = pix[0]
-    y = pix[1]
-    px = float(x) + 0.5
-    py = float(y) + 0.5
-    start = tile_ranges[pix[2], 0]
+        Also accumulates, per Gaussian, the sum over pixels of the absolute per-pixel gradient of its
+        2D mean (AbsGS).
 
-    final_transmittance = float(1.0)
-    g_color = wp.vec3(0.0, 0.0, 0.0)
-    g_depth = float(0.0)
-    g_alpha = float(0.0)
-    last = start - 1  # pixels outside the image take part in the warp's collectives with nothing to add
-    if x < width and y < height:
-        final_transmittance = transmittance[y, x]
-        g_color = grad_image[y, x]
-        g_depth = grad_depth[y, x]
-        g_alpha = grad_alpha[y, x]
-        last = last_contributor[y, x]
-    t = final_transmittance
-    # d(color)/d(alpha_i) and d(alpha_pixel)/d(alpha_i) both carry T_final / (1 - alpha_i).
-    g_final = g_alpha - wp.dot(background[0], g_color)
+        Each pixel walks its list back to front from its last contributor, recovering the transmittance
+        T_i in front of Gaussian i by division and keeping S, the colour (and depth) composited behind
+        it: S = sum over j > i of c_j alpha_j T_j. With C = sum c_i alpha_i T_i + T_final background,
+        dC/dalpha_i = c_i T_i - (S + T_final background) / (1 - alpha_i).
 
-    behind_color = wp.vec3(0.0, 0.0, 0.0)  # what is composited behind Gaussian i, per unit transmittance
-    behind_depth = float(0.0)
-    prev_alpha = float(0.0)
-    prev_color = wp.vec3(0.0, 0.0, 0.0)
-    prev_depth = float(0.0)
-    # The list is walked back to front in batches of 256 from the last contributor of any pixel of
-    # the block (on CUDA each batch is loaded into shared memory together, as in the forward pass);
-    # within a batch a warp starts at the last contributor of any of its lanes, so all its lanes
-    # visit the same Gaussians (the collectives need that) and none visits one behind them all. On
-    # the CPU every thread is its own warp and block: it starts at its own last contributor.
-    staged = on_cuda()
-    warp_last = lane_max_int(last)
-    batch = block_max_int(warp_last)  # index of the batch's first (back-most) Gaussian
-    while batch >= start:
-        count = wp.min(256, batch - start + 1)
-        if staged != 0:
-            if local < count:
-                gl = sorted_gauss_ids[batch - local]
-                tile_ids(CACHE_STORE, local, gl)
-                stage_gaussian(local, gl, means2d, conics, colors, opacities, depths)
-            tile_cache(CACHE_SYNC, 0, 0.0)
-        for j in range(wp.max(batch - warp_last, 0), count):
-            k = batch - j
-            g = int(0)
+        The 32 lanes of a warp (two rows of one tile) walk the tile's list together, from the last
+        contributor of any of them down to the tile's start; a lane whose pixel the Gaussian does not
+        touch adds zeros. Each Gaussian's gradients are summed over the warp in registers and one lane
+        adds them to global memory (``lanes``), so no lane may leave the loop early.
+        """
+        tid = wp.tid()
+        pix = tile_pixel(tid, tiles_x)
+        local = tid % 256
+        x = pix[0]
+        y = pix[1]
+        px = float(x) + 0.5
+        py = float(y) + 0.5
+        start = tile_ranges[pix[2], 0]
+
+        final_transmittance = float(1.0)
+        g_color = wp.vec3(0.0, 0.0, 0.0)
+        g_depth = float(0.0)
+        g_alpha = float(0.0)
+        last = start - 1  # pixels outside the image take part in the warp's collectives with nothing to add
+        if x < width and y < height:
+            final_transmittance = transmittance[y, x]
+            g_color = grad_image[y, x]
+            if wp.static(sums):
+                g_depth = grad_depth[y, x]
+            g_alpha = grad_alpha[y, x]
+            last = last_contributor[y, x]
+        t = final_transmittance
+        # d(color)/d(alpha_i) and d(alpha_pixel)/d(alpha_i) both carry T_final / (1 - alpha_i).
+        g_final = final_transmittance * (g_alpha - wp.dot(background[0], g_color))
+
+        behind_color = wp.vec3(0.0, 0.0, 0.0)  # S: colour composited behind Gaussian i
+        behind_depth = float(0.0)
+        # The list is walked back to front in batches of 256 from the last contributor of any pixel of
+        # the block (on CUDA each batch is loaded into shared memory together, as in the forward pass);
+        # within a batch a warp starts at the last contributor of any of its lanes, so all its lanes
+        # visit the same Gaussians (the collectives need that) and none visits one behind them all. On
+        # the CPU every thread is its own warp and block: it starts at its own last contributor.
+        staged = on_cuda()
+        warp_last = lane_max_int(last)
+        batch = block_max_int(warp_last)  # index of the batch's first (back-most) Gaussian
+        while batch >= start:
+            count = wp.min(256, batch - start + 1)
             if staged != 0:
-                g = tile_ids(CACHE_LOAD, j, 0)
-                mean = wp.vec2(tile_cache(CACHE_LOAD, j, 0.0), tile_cache(CACHE_LOAD, 256 + j, 0.0))
-                conic = wp.vec3(tile_cache(CACHE_LOAD, 512 + j, 0.0), tile_cache(CACHE_LOAD, 768 + j, 0.0), tile_cache(CACHE_LOAD, 1024 + j, 0.0))
-                opacity = tile_cache(CACHE_LOAD, 1280 + j, 0.0)
-            else:
-                g = sorted_gauss_ids[k]
-                mean = means2d[g]
-                conic = conics[g]
-                opacity = opacities[g]
-            dx = mean[0] - px
-            dy = mean[1] - py
-            power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy
-            gauss = wp.exp(wp.min(power, 0.0))
-            raw_alpha = opacity * gauss
-            alpha = wp.min(MAX_ALPHA, raw_alpha)
-            valid = int(0)
-            if k <= last and power <= 0.0 and alpha >= ALPHA_THRESHOLD:
-                valid = 1
-            d_color = wp.vec3(0.0, 0.0, 0.0)
-            d_depth = float(0.0)
-            d_opacity = float(0.0)
-            d_mean = wp.vec2(0.0, 0.0)
-            d_conic = wp.vec3(0.0, 0.0, 0.0)
-            if valid != 0:
-                t = t / (1.0 - alpha)
-                behind_color = prev_alpha * prev_color + (1.0 - prev_alpha) * behind_color
-                behind_depth = prev_alpha * prev_depth + (1.0 - prev_alpha) * behind_depth
-                if staged != 0:
-                    c = wp.vec3(tile_cache(CACHE_LOAD, 1536 + j, 0.0), tile_cache(CACHE_LOAD, 1792 + j, 0.0), tile_cache(CACHE_LOAD, 2048 + j, 0.0))
-                    z = tile_cache(CACHE_LOAD, 2304 + j, 0.0)
-                else:
-                    c = colors[g]
-                    z = depths[g]
-                weight = alpha * t
-                d_color = weight * g_color
-                d_depth = weight * g_depth
-                grad_alpha_i = t * (wp.dot(c - behind_color, g_color) + (z - behind_depth) * g_depth)
-                grad_alpha_i += final_transmittance / (1.0 - alpha) * g_final
-                prev_alpha = alpha
-                prev_color = c
-                prev_depth = z
-                if raw_alpha < MAX_ALPHA:
-                    d_opacity = gauss * grad_alpha_i
-                    grad_power = opacity * gauss * grad_alpha_i
-                    d_mean = grad_power * wp.vec2(-(conic[0] * dx + conic[1] * dy), -(conic[2] * dy + conic[1] * dx))
-                    d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
-            if lane_any(valid) != 0:
+                if local < count:
+                    stage_gaussian(local, sorted_gauss_ids[batch - local], means2d, conics, colors, opacities, depths)
+                block_sync()
+            for j in range(wp.max(batch - warp_last, 0), count):
+                k = batch - j
+                g = int(0)
+                if staged == 0:
+                    g = sorted_gauss_ids[k]
+                shape = batch_field(staged, 0, j, g, means2d, conics, colors, opacities, depths)
+                extra = batch_field(staged, 1, j, g, means2d, conics, colors, opacities, depths)
+                dx = shape[0] - px
+                dy = shape[1] - py
+                power = -0.5 * (shape[2] * dx * dx + extra[0] * dy * dy) - shape[3] * dx * dy
+                gauss = wp.exp(wp.min(power, 0.0))
+                raw_alpha = extra[1] * gauss
+                alpha = wp.min(MAX_ALPHA, raw_alpha)
+                valid = int(0)
+                if k <= last and power <= 0.0 and alpha >= ALPHA_THRESHOLD:
+                    valid = 1
+                if lane_any(valid) == 0:
+                    continue
+                d_color = wp.vec3(0.0, 0.0, 0.0)
+                d_depth = float(0.0)
+                d_opacity = float(0.0)
+                d_mean = wp.vec2(0.0, 0.0)
+                d_conic = wp.vec3(0.0, 0.0, 0.0)
+                if valid != 0:
+                    look = batch_field(staged, 2, j, g, means2d, conics, colors, opacities, depths)
+                    c = wp.vec3(look[0], look[1], look[2])
+                    front = 1.0 / (1.0 - alpha)
+                    t = t * front
+                    weight = alpha * t
+                    d_color = weight * g_color
+                    d_depth = weight * g_depth
+                    grad_alpha_i = wp.dot(t * c - front * behind_color, g_color) + (t * look[3] - front * behind_depth) * g_depth
+                    grad_alpha_i += front * g_final
+                    behind_color += weight * c
+                    behind_depth += weight * look[3]
+                    if raw_alpha < MAX_ALPHA:
+                        d_opacity = gauss * grad_alpha_i
+                        grad_power = raw_alpha * grad_alpha_i
+                        d_mean = grad_power * wp.vec2(-(shape[2] * dx + shape[3] * dy), -(extra[0] * dy + shape[3] * dx))
+                        d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
                 d_abs = wp.vec2(wp.abs(d_mean[0]), wp.abs(d_mean[1]))
                 d_color = lane_sum_vec3(d_color)
-                d_depth = lane_sum(d_depth)
+                if wp.static(sums):
+                    d_depth = lane_sum(d_depth)
                 d_opacity = lane_sum(d_opacity)
                 d_mean = lane_sum_vec2(d_mean)
-                d_abs = lane_sum_vec2(d_abs)
+                if wp.static(sums):
+                    d_abs = lane_sum_vec2(d_abs)
                 d_conic = lane_sum_vec3(d_conic)
                 if lane_leads() != 0:
+                    if staged != 0:
+                        g = tile_ids(BATCH_LOAD, j, 0)
                     wp.atomic_add(grad_colors_out, g, d_color)
-                    wp.atomic_add(grad_depths_out, g, d_depth)
                     wp.atomic_add(grad_opacities_out, g, d_opacity)
                     wp.atomic_add(grad_means2d_out, g, d_mean)
-                    wp.atomic_add(absgrad_means2d_out, g, d_abs)
                     wp.atomic_add(grad_conics_out, g, d_conic)
-        if staged != 0:
-            tile_cache(CACHE_SYNC, 0, 0.0)  # the batch is read before the next one overwrites it
-        batch -= 256
+                    if wp.static(sums):
+                        wp.atomic_add(grad_depths_out, g, d_depth)
+                        wp.atomic_add(absgrad_means2d_out, g, d_abs)
+            if staged != 0:
+                block_sync()  # the batch is read before the next one overwrites it
+            batch -= 256
+
+    return blend_backward_kernel
+
+
+blend_backward_kernel = _blend_backward(True)
+# The same for a loss without the depth sum and no AbsGS sums: it reads no ``grad_depth`` and
+# leaves ``grad_depths_out`` and ``absgrad_means2d_out`` untouched (None may be passed for all three).
+blend_backward_lean_kernel = _blend_backward(False)
 
 
 @wp.kernel(enable_backward=False)

@@ -119,33 +119,56 @@ def group_sum_vec3(v: wp.vec3):
 
 
 # ------------------------------------------------------------------------------------------------
-# The block of 256 threads that renders one tile: a cache of the tile's next 256 Gaussians.
+# The block of 256 threads that renders one tile: the tile's next 256 Gaussians in shared memory,
+# as three float4 fields per Gaussian (field f of slot j at f * 256 + j), so that a lane reads a
+# Gaussian with 128-bit loads that the whole warp shares (one address: a broadcast).
 
-CACHE_FIELDS = 10  # mean x, y; conic a, b, c; opacity; colour r, g, b; depth
-CACHE_STORE = wp.constant(0)
-CACHE_LOAD = wp.constant(1)
-CACHE_SYNC = wp.constant(2)
-CACHE_COUNT = wp.constant(3)
+BATCH_STORE = wp.constant(0)
+BATCH_LOAD = wp.constant(1)
+BATCH_FIELDS = 3
 
 
 @wp.func_native(
     f"""
 #if defined(__CUDA_ARCH__)
-    __shared__ float cache[256 * {CACHE_FIELDS}];
-    if (op == 0) {{ cache[slot] = value; return 0.0f; }}
-    if (op == 1) return cache[slot];
-    if (op == 2) {{ __syncthreads(); return 0.0f; }}
-    return (float)__syncthreads_count(value != 0.0f);
+    __shared__ float4 batch[256 * {BATCH_FIELDS}];
+    if (op == 0) {{ batch[slot] = make_float4(value.c[0], value.c[1], value.c[2], value.c[3]); return value; }}
+    float4 v = batch[slot];
+    return wp::vec4(v.x, v.y, v.z, v.w);
 #else
-    return 0.0f;
+    return value;
 #endif
 """
 )
-def tile_cache(op: int, slot: int, value: float) -> float:
-    """One shared-memory array per block, on CUDA only: CACHE_STORE ``value`` at ``slot``,
-    CACHE_LOAD ``slot``, CACHE_SYNC (a barrier), or CACHE_COUNT: a barrier that returns how many of
-    the block's threads passed a non-zero ``value``. Every thread of the block must reach the same
-    SYNC and COUNT calls. Unused on the CPU (``on_cuda`` is 0 there)."""
+def tile_batch(op: int, slot: int, value: wp.vec4) -> wp.vec4:
+    """One shared-memory array of float4 per block, on CUDA only: BATCH_STORE ``value`` at
+    ``slot`` (returns it) or BATCH_LOAD ``slot``. Unused on the CPU (``on_cuda`` is 0 there)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    __syncthreads();
+#endif
+"""
+)
+def block_sync():
+    """A barrier for the block's threads (CUDA; nothing on the CPU, where a thread is its own block)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return __syncthreads_count(flag != 0);
+#else
+    return flag != 0;
+#endif
+"""
+)
+def block_count(flag: int) -> int:
+    """A barrier that returns how many of the block's threads passed a non-zero ``flag``."""
     ...
 
 
@@ -175,7 +198,7 @@ def on_cuda() -> int:
 """
 )
 def tile_ids(op: int, slot: int, value: int) -> int:
-    """The batch's Gaussian ids beside ``tile_cache``: CACHE_STORE or CACHE_LOAD an int (CUDA only)."""
+    """The batch's Gaussian ids beside ``tile_batch``: BATCH_STORE or BATCH_LOAD an int (CUDA only)."""
     ...
 
 

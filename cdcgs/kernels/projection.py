@@ -180,11 +180,15 @@ def sh_to_color_kernel(
     camera_center: wp.vec3,
     radii: wp.array(dtype=wp.vec2i),
     colors_out: wp.array(dtype=wp.vec3),
+    nonfinite_out: wp.array(dtype=wp.int32),
 ):
     """View-dependent colour max(SH . basis(dir) + 0.5, 0), dir from the camera centre to the mean (3DGS).
 
     ``radii`` from the projection skips culled Gaussians (radius 0: colour 0, no gradient), which
-    no pixel composites; pass None to colour every Gaussian.
+    no pixel composites; pass None to colour every Gaussian. ``nonfinite_out`` (optional, None
+    skips the check): ``nonfinite_out[0]`` is set to 1 when a coloured Gaussian's coefficients hold
+    a NaN or an infinity (a non-finite term always makes the sum non-finite: NaN, inf - inf and
+    0 * inf are NaN), so validating ``sh`` costs no read beyond the colouring's own.
     """
     i = wp.tid()
     if radii.shape[0] > 0:
@@ -222,6 +226,9 @@ def sh_to_color_kernel(
                     - 0.5900435899266435 * x * (xx - 3.0 * yy) * gauss_sh[i, 15]
                 )
     color = color + wp.vec3(0.5, 0.5, 0.5)
+    if nonfinite_out.shape[0] > 0:
+        if not wp.isfinite(color):
+            nonfinite_out[0] = 1  # every writer writes 1: no atomics needed
     colors_out[i] = wp.vec3(wp.max(color[0], 0.0), wp.max(color[1], 0.0), wp.max(color[2], 0.0))
 
 
@@ -296,6 +303,12 @@ def sh_basis_vjp(d: wp.vec3, w: vec16, degree: int):
     return g
 
 
+@wp.func
+def clamp_gradient(color: wp.vec3, grad: wp.vec3):
+    """The gradient through colour = max(raw, 0): it passes where the colour is positive (raw > 0)."""
+    return wp.vec3(wp.where(color[0] > 0.0, grad[0], 0.0), wp.where(color[1] > 0.0, grad[1], 0.0), wp.where(color[2] > 0.0, grad[2], 0.0))
+
+
 @wp.kernel(enable_backward=False)
 def sh_to_color_backward_kernel(
     gauss_means: wp.array(dtype=wp.vec3),
@@ -303,13 +316,15 @@ def sh_to_color_backward_kernel(
     sh_degree: int,
     camera_center: wp.vec3,
     radii: wp.array(dtype=wp.vec2i),
+    colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
 ):
     """Adjoint of ``sh_to_color_kernel``, written out: each thread owns its Gaussian's gradients, so
     they are plain stores (every entry written, coefficients above the degree and culled Gaussians
-    get 0), no atomics."""
+    get 0), no atomics. ``colors`` is the forward output: colour = max(raw, 0) passes the gradient
+    where it is positive."""
     i = wp.tid()
     stored = gauss_sh.shape[1]
     if radii.shape[0] > 0:
@@ -322,15 +337,9 @@ def sh_to_color_backward_kernel(
     d = wp.normalize(v)
     basis = sh_basis(d, sh_degree)
     count = (sh_degree + 1) * (sh_degree + 1)
-    raw = wp.vec3(0.5, 0.5, 0.5)
+    g = clamp_gradient(colors[i], grad_colors[i])
     # Loops over a constant 16 are unrolled, so every vector index is a constant and the vectors
     # stay in registers (runtime bounds put them in local memory, three times slower).
-    for j in range(16):
-        if j < count:
-            raw += basis[j] * gauss_sh[i, j]
-    g = grad_colors[i]
-    # colour = max(raw, 0) per channel: the gradient passes where raw > 0
-    g = wp.vec3(wp.where(raw[0] > 0.0, g[0], 0.0), wp.where(raw[1] > 0.0, g[1], 0.0), wp.where(raw[2] > 0.0, g[2], 0.0))
     w = vec16()
     for j in range(16):
         if j < count:
@@ -372,6 +381,7 @@ def sh_to_color_grouped_backward_kernel(
     sh_degree: int,
     camera_center: wp.vec3,
     radii: wp.array(dtype=wp.vec2i),
+    colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
@@ -396,10 +406,7 @@ def sh_to_color_grouped_backward_kernel(
     coefficient = zero
     if j < count:
         coefficient = gauss_sh[i, j]
-    raw = group_sum_vec3(b * coefficient) + wp.vec3(0.5, 0.5, 0.5)
-    g = grad_colors[i]
-    # colour = max(raw, 0) per channel: the gradient passes where raw > 0
-    g = wp.vec3(wp.where(raw[0] > 0.0, g[0], 0.0), wp.where(raw[1] > 0.0, g[1], 0.0), wp.where(raw[2] > 0.0, g[2], 0.0))
+    g = clamp_gradient(colors[i], grad_colors[i])
     if j < stored:
         grad_sh_out[i, j] = wp.where(j < count, b * g, zero)
     for k in range(j + 16, stored, 16):

@@ -90,7 +90,10 @@ class ADC:
 
     def before_backward(self, ctx: StepContext, state: dict) -> None:
         if ctx.step <= self.densify_until:
-            ctx.info.means2d.retain_grad()
+            if self.absgrad:
+                ctx.info.retain_absgrad()
+            else:
+                ctx.info.means2d.retain_grad()
 
     def after_backward(self, ctx: StepContext, state: dict) -> dict:
         log = {}
