@@ -82,7 +82,7 @@ def test_presets_cover_the_variants_table():
     assert compact.centre == "quantile" and compact.rho_prune == 0.5
     baseline = make_strategy("3dgs")
     assert not (baseline.cdc_densify or baseline.cdc_prune or baseline.caat or baseline.periodic_prune or baseline.needs_complexity)
-    assert baseline.prune_screen_size == 20.0
+    assert baseline.prune_screen_size == 0.0  # the 3DGS code's screen-size rule never fires
     with pytest.raises(ValueError, match="complexity_schedule must be one of full, online"):
         make_strategy("cdc", {"complexity_schedule": "sometimes"})
 
