@@ -235,7 +235,7 @@ class _Blend(torch.autograd.Function):
         height, width = transmittance.shape
         grad_image = _grad_or_zeros(grad_image, means2d.new_empty(height, width, 3))
         # alpha = 1 - transmittance: a gradient on transmittance is minus one on alpha.
-        grad_alpha = -_grad_or_zeros(grad_transmittance, transmittance)
+        grad_alpha = torch.zeros_like(transmittance) if grad_transmittance is None else -grad_transmittance.contiguous()
         n = means2d.shape[0]
         # The depth gradients and the AbsGS sums cost a sixth of the kernel: only when the loss
         # uses the depth sum or ``info.retain_absgrad()`` asked for the sums.

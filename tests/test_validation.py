@@ -73,10 +73,13 @@ def test_sh_is_checked_where_it_is_read(args):
 
 @pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "sh", "colors"])
 def test_non_finite_last_value_is_found(args, name):
-    """The check runs one thread per value of the longest input; every input's last value counts."""
+    """The check runs one thread per value of the longest input; every input's last value counts
+    (``sh``'s in the colouring kernel: its last Gaussian is in view)."""
     tensors, camera = args
     if name == "colors":
         tensors = {**{k: v for k, v in tensors.items() if k != "sh"}, "colors": torch.rand_like(tensors["means"])}
+    if name == "sh":
+        assert call(tensors, camera)[2].visible[-1]
     broken = tensors[name].clone()
     broken.view(-1)[-1] = -float("inf")
     with pytest.raises(ValueError, match=f"{name} has non-finite values"):
