@@ -46,7 +46,7 @@ import cdcgs  # noqa: E402
 STAGES = [
     ("projection", ("project_gaussians", "projection_ewa_3dgs_fused_fwd")),
     ("sh colour", ("sh_to_color", "spherical_harmonics_fwd")),
-    ("binning + sort", ("count_tiles", "emit_keys", "tile_ranges", "intersect_", "radix", "scan", "sort")),
+    ("binning + sort", ("count_tiles", "gather_counts", "emit_keys", "tile_ranges", "intersect_", "radix", "scan", "sort")),
     ("blend forward", ("blend_forward", "rasterize_to_pixels_3dgs_fwd")),
     ("blend backward", ("blend_backward", "rasterize_to_pixels_3dgs_bwd")),
     ("sh colour backward", ("spherical_harmonics_bwd",)),

@@ -10,7 +10,7 @@ import warp as wp
 wp.init()
 
 _TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
-_VECTOR_TYPES = {wp.vec3: (torch.float32, 3), wp.vec2: (torch.float32, 2), wp.vec2i: (torch.int32, 2)}
+_VECTOR_TYPES = {wp.vec3: (torch.float32, 3), wp.vec2: (torch.float32, 2), wp.vec2i: (torch.int32, 2), wp.vec4i: (torch.int32, 4)}
 
 
 def wp_array(tensor: torch.Tensor, dtype) -> wp.array:
@@ -56,14 +56,15 @@ _active = threading.local()
 def warp_scope(device: torch.device):
     """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe).
 
-    Nested scopes for the same device and stream in one thread cost nothing: the outer one stays.
+    A scope nested in one for the same device in the same thread costs nothing: the outer one's
+    device and stream stay (the stream is the one current when the outer scope was entered).
     """
-    key = (device.type, device.index, torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None)
-    if getattr(_active, "key", None) == key:
-        yield _active.device
+    key = (device.type, device.index)
+    outer = getattr(_active, "key", None), getattr(_active, "device", None)
+    if outer[0] == key:
+        yield outer[1]
         return
     with _scope_lock, _scoped(device) as warp_device:
-        outer = getattr(_active, "key", None), getattr(_active, "device", None)
         _active.key, _active.device = key, warp_device
         try:
             yield warp_device

@@ -63,7 +63,6 @@ class RasterizeInfo:
     opacities: torch.Tensor
     colors: torch.Tensor
     radii: torch.Tensor
-    visible: torch.Tensor
     tile_counts: torch.Tensor
     num_intersections: int
     tile_ranges: torch.Tensor
@@ -72,6 +71,10 @@ class RasterizeInfo:
     transmittance: torch.Tensor
     depth: torch.Tensor | None
     _absgrad: dict = field(default_factory=dict, repr=False)  # shared with the blend's backward pass
+
+    @property
+    def visible(self) -> torch.Tensor:
+        return (self.radii > 0).all(dim=-1)  # computed when asked: two launches a render saved
 
     @property
     def means2d_absgrad(self) -> torch.Tensor | None:
@@ -113,19 +116,20 @@ class RasterizeInfo:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, camera: Camera, antialiased: bool):
+    def forward(ctx, means, quats, scales, opacities, camera: Camera, antialiased: bool, nonfinite):
         n = means.shape[0]
-        means2d = means.new_zeros(n, 2)
-        conics = means.new_zeros(n, 3)
-        depths = means.new_zeros(n)
-        out_opacities = means.new_zeros(n)
-        radii = torch.zeros(n, 2, dtype=torch.int32, device=means.device)
+        # The kernel writes every entry (zeros for culled Gaussians): no zero fills.
+        means2d = means.new_empty(n, 2)
+        conics = means.new_empty(n, 3)
+        depths = means.new_empty(n)
+        out_opacities = means.new_empty(n)
+        radii = torch.empty(n, 2, dtype=torch.int32, device=means.device)
         with _warp_scope(means.device):
             wp.launch(
                 project_gaussians_kernel,
                 n,
                 inputs=_project_inputs(means, quats, scales, opacities, camera, antialiased),
-                outputs=_project_outputs(means2d, conics, depths, out_opacities, radii),
+                outputs=[*_project_outputs(means2d, conics, depths, out_opacities, radii), _arg(nonfinite, wp.int32)],
             )
         ctx.save_for_backward(means, quats, scales, opacities, means2d, conics, depths, out_opacities, radii)
         ctx.camera = camera
@@ -136,7 +140,9 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_means2d, grad_conics, grad_depths, grad_opacities_out, _grad_radii):
         means, quats, scales, opacities, means2d, conics, depths, out_opacities, radii = ctx.saved_tensors
-        grads_in = [torch.zeros_like(t) for t in (means, quats, scales, opacities)]
+        n = means.shape[0]
+        # One zero fill for the four gradients the adjoint adds to: [means | quats | scales | opacities].
+        grads_in = [part.view(t.shape) for part, t in zip(means.new_zeros(11 * n).split([3 * n, 4 * n, 3 * n, n]), (means, quats, scales, opacities))]
         grads_out = [
             _grad_or_zeros(g, t) for g, t in zip((grad_means2d, grad_conics, grad_depths, grad_opacities_out), (means2d, conics, depths, out_opacities))
         ]
@@ -145,12 +151,12 @@ class _Project(torch.autograd.Function):
                 project_gaussians_kernel,
                 means.shape[0],
                 inputs=_project_inputs(means, quats, scales, opacities, ctx.camera, ctx.antialiased),
-                outputs=_project_outputs(means2d, conics, depths, out_opacities, radii),
+                outputs=[*_project_outputs(means2d, conics, depths, out_opacities, radii), None],
                 adj_inputs=[*_project_inputs(*grads_in, Camera(), ctx.antialiased)[:4], Camera(), 0],
-                adj_outputs=[*_project_outputs(*grads_out, radii)[:4], None],
+                adj_outputs=[*_project_outputs(*grads_out, radii)[:4], None, None],
                 adjoint=True,
             )
-        return (*grads_in, None, None)
+        return (*grads_in, None, None, None)
 
 
 def _project_inputs(means, quats, scales, opacities, camera, antialiased):
@@ -235,7 +241,7 @@ class _Blend(torch.autograd.Function):
         height, width = transmittance.shape
         grad_image = _grad_or_zeros(grad_image, means2d.new_empty(height, width, 3))
         # alpha = 1 - transmittance: a gradient on transmittance is minus one on alpha.
-        grad_alpha = torch.zeros_like(transmittance) if grad_transmittance is None else -grad_transmittance.contiguous()
+        grad_alpha = None if grad_transmittance is None else -grad_transmittance.contiguous()
         n = means2d.shape[0]
         # The depth gradients and the AbsGS sums cost a sixth of the kernel: only when the loss
         # uses the depth sum or ``info.retain_absgrad()`` asked for the sums.
@@ -258,14 +264,16 @@ class _Blend(torch.autograd.Function):
                     *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
                     _arg(background, wp.vec3), width, height, bins.tiles_x,
                     _arg(transmittance, wp.float32), _arg(last, wp.int32),
-                    _arg(grad_image, wp.vec3), _arg(grad_alpha, wp.float32), _arg(grad_depth_sum, wp.float32) if sums else None,
+                    _arg(grad_image, wp.vec3), None if grad_alpha is None else _arg(grad_alpha, wp.float32), _arg(grad_depth_sum, wp.float32) if sums else None,
                 ],  # fmt: skip
                 outputs=grad_outputs,
                 block_dim=TILE_SIZE * TILE_SIZE,
             )
         if not sums:
             grads.append(None)  # no gradient reaches the depths
-        grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
+        grad_background = None
+        if ctx.needs_input_grad[5]:
+            grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
         return (*grads, grad_background, None, None, None, None)
 
 
@@ -284,7 +292,7 @@ def _check_tensor(name: str, value, shape: tuple, device: torch.device | None) -
         raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
     if value.dtype != torch.float32:
         raise ValueError(f"{name} must be float32, got {value.dtype}")
-    if value.dim() != len(shape) or any(s not in (None, -1) and s != v for s, v in zip(shape, value.shape)):
+    if value.dim() != len(shape) or not all(s is None or s == -1 or s == v for s, v in zip(shape, value.shape)):
         expected = "[" + ", ".join("N" if s is None else ("*" if s == -1 else str(s)) for s in shape) + "]"
         raise ValueError(f"{name} must have shape {expected}, got {list(value.shape)}")
     if device is not None and value.device != device:
@@ -425,47 +433,52 @@ def rasterize(
             raise ValueError(f"sh has {k} coefficients per channel, degree {sh_degree} needs {(sh_degree + 1) ** 2}")
     else:
         colors = _check_tensor("colors", colors, (n, 3), device)
+    background_tensor = isinstance(background, torch.Tensor)  # checked on the device below
     if background is None:
         background = means.new_zeros(3)
-    elif isinstance(background, torch.Tensor):
+    elif background_tensor:
         background = _check_tensor("background", background, (3,), device)
     else:
         try:
-            background = means.new_tensor([float(v) for v in background])
+            values = [float(v) for v in background]
         except (TypeError, ValueError):
             raise ValueError(f"background must be 3 numbers or a [3] tensor, got {background!r}") from None
-        if background.shape != (3,):
-            raise ValueError(f"background must have 3 entries, got {background.numel()}")
+        if len(values) != 3:
+            raise ValueError(f"background must have 3 entries, got {len(values)}")
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("background has non-finite values (NaN or inf)")
+        background = means.new_tensor(values)
     camera = _check_camera(viewmat, K, width, height, near_plane)
 
     # One Warp scope for the whole forward pass (the autograd functions' own scopes nest for free).
     with _warp_scope(device):
         checked = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "background": background}
         checked["sh" if sh is not None else "colors"] = sh if sh is not None else colors
-        # One kernel flags the tensors holding NaN or inf (each read once, coalesced; the flags travel
-        # with the intersection count below, so validation costs no extra host synchronisation).
-        # ``sh``, most of the bytes, is checked by the colouring kernel where it reads it instead:
-        # only the coefficients of Gaussians in view reach the image.
+        # Flags for the tensors holding NaN or inf, raised by the kernels that read them anyway: the
+        # projection (means, quats, scales, opacities) and the colouring (``sh``, of the Gaussians in
+        # view, the only ones that reach the image). Only a background tensor and ``colors`` are read
+        # by a check of their own. The flags travel with the intersection count below, so validation
+        # costs no extra host synchronisation.
         nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
-        flat = [t.view(-1) for t in checked.values()]
-        if sh is not None:
-            flat[-1] = flat[-1][:0]
-        threads = min(max(t.numel() for t in flat), _CHECK_THREADS)
-        wp.launch(
-            find_nonfinite_kernel, threads,
-            inputs=[*(_arg(t, wp.float32) for t in flat), threads], outputs=[_arg(nonfinite, wp.int32)],
-        )  # fmt: skip
+        own_check = [background if background_tensor else background[:0], colors if sh is None else means[:0]]
+        if any(t.numel() for t in own_check):
+            flat = [means[:0].view(-1)] * 4 + [t.view(-1) for t in own_check]
+            threads = min(max(t.numel() for t in flat), _CHECK_THREADS)
+            wp.launch(
+                find_nonfinite_kernel, threads,
+                inputs=[*(_arg(t, wp.float32) for t in flat), threads], outputs=[_arg(nonfinite, wp.int32)],
+            )  # fmt: skip
 
-        means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased)
+        means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased, nonfinite)
         if sh is not None:
             center = camera.center
             center = wp.vec3(center[0], center[1], center[2])
             colors = _ShColor.apply(means, sh, sh_degree, center, radii, nonfinite[len(checked) - 1 :])
 
-        def read_count(tile_offsets: wp.array) -> int:
+        def read_count(offsets: wp.array) -> int:
             # The single host synchronisation of a render: the intersection count sizes the sort
             # buffers. The finiteness flags travel with it so that validation costs no extra sync.
-            values = torch.cat([nonfinite, wp.to_torch(tile_offsets)[-1:]]).tolist()
+            values = torch.cat([nonfinite, wp.to_torch(offsets)[-1:]]).tolist()
             for name, bad in zip(checked, values[:-1]):
                 if bad:
                     raise ValueError(f"{name} has non-finite values (NaN or inf)")
@@ -500,7 +513,6 @@ def rasterize(
         opacities=composited_opacities,
         colors=colors,
         radii=radii,
-        visible=(radii > 0).all(dim=-1),
         tile_counts=wp.to_torch(bins.tile_counts),
         num_intersections=bins.num_intersections,
         tile_ranges=wp.to_torch(bins.tile_ranges).view(bins.tiles_y, bins.tiles_x, 2),

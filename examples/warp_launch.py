@@ -24,11 +24,12 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
     n = len(means)
     camera = make_camera(viewmat, K, width, height)
     means_wp = wp.array(means, dtype=wp.vec3, device=device)
-    means2d = wp.zeros(n, dtype=wp.vec2, device=device)
-    conics = wp.zeros(n, dtype=wp.vec3, device=device)
-    depths = wp.zeros(n, dtype=float, device=device)
-    composited_opacities = wp.zeros(n, dtype=float, device=device)
-    radii = wp.zeros(n, dtype=wp.vec2i, device=device)
+    # The projection writes every entry (zeros and radius 0 for culled Gaussians).
+    means2d = wp.empty(n, dtype=wp.vec2, device=device)
+    conics = wp.empty(n, dtype=wp.vec3, device=device)
+    depths = wp.empty(n, dtype=float, device=device)
+    composited_opacities = wp.empty(n, dtype=float, device=device)
+    radii = wp.empty(n, dtype=wp.vec2i, device=device)
     wp.launch(
         project_gaussians_kernel,
         dim=n,
@@ -40,7 +41,7 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
             camera,
             0,  # antialiased
         ],
-        outputs=[means2d, conics, depths, composited_opacities, radii],
+        outputs=[means2d, conics, depths, composited_opacities, radii, None],  # None: no finiteness flags
         device=device,
     )
     colors = wp.zeros(n, dtype=wp.vec3, device=device)

@@ -37,6 +37,7 @@ def make_scene(n, device="cpu"):
         ("sh_to_color_kernel_4c707bbf_cuda_kernel_forward", "sh colour"),
         ("sh_to_color_kernel_4c707bbf_cuda_kernel_backward", "sh colour backward"),
         ("emit_keys_kernel_1a2b_cuda_kernel_forward", "binning + sort"),
+        ("gather_counts_kernel_1a2b_cuda_kernel_forward", "binning + sort"),
         ("void cub::DeviceRadixSortOnesweepKernel<cub::DeviceRadixSortPolicy>", "binning + sort"),
         ("blend_forward_kernel_66825d96_cuda_kernel_forward", "blend forward"),
         ("blend_backward_kernel_30912936_cuda_kernel_forward", "blend backward"),

@@ -68,3 +68,47 @@ def test_tile_counts_match_rectangles(device):
         assert counts[i] == (x1 - x0) * (y1 - y0), i
         listed = (info.sorted_gauss_ids.cpu() == i).sum()
         assert listed == counts[i]
+
+
+def test_bin_gaussians_orders_each_tile_by_depth_then_id(device):
+    """``bin_gaussians`` on plain Warp arrays against a brute-force sort: many equal depths (ties
+    go to the lower id), culled Gaussians (radius 0), footprints clipped by the image border."""
+    import numpy as np
+    import warp as wp
+
+    from cdcgs.kernels import TILE_SIZE, bin_gaussians
+
+    rng = np.random.default_rng(5)
+    n, width, height = 400, 90, 60
+    means2d = rng.uniform(-20, [110, 80], size=(n, 2)).astype(np.float32)
+    radii = rng.integers(1, 30, size=(n, 2)).astype(np.int32)
+    radii[rng.random(n) < 0.2] = 0
+    depths = rng.choice(np.float32([0.5, 1.0, 1.0 + 2**-20, 3.0, 7.25]), size=n)
+    bins = bin_gaussians(
+        wp.array(means2d, dtype=wp.vec2, device=device), wp.array(radii, dtype=wp.vec2i, device=device),
+        wp.array(depths, dtype=wp.float32, device=device), width, height,
+    )  # fmt: skip
+    tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
+    ranges = bins.tile_ranges.numpy().reshape(tiles_y, tiles_x, 2)
+    ids = bins.gauss_ids.numpy()
+    counts = np.zeros(n, dtype=np.int64)
+    ties = 0
+    for ty in range(tiles_y):
+        for tx in range(tiles_x):
+            listed = []
+            for g in range(n):
+                if radii[g].min() <= 0:
+                    continue
+                (mx, my), (rx, ry) = means2d[g].astype(np.float64), radii[g]
+                x0, x1 = max(int(np.floor((mx - rx) / 16)), 0), min(int(np.floor((mx + rx) / 16)) + 1, tiles_x)
+                y0, y1 = max(int(np.floor((my - ry) / 16)), 0), min(int(np.floor((my + ry) / 16)) + 1, tiles_y)
+                if x0 <= tx < x1 and y0 <= ty < y1:
+                    listed.append(g)
+                    counts[g] += 1
+            expected = sorted(listed, key=lambda g: (depths[g], g))
+            ties += len(expected) - len({float(depths[g]) for g in expected})
+            start, end = ranges[ty, tx]
+            assert ids[start:end].tolist() == expected, (tx, ty)
+    assert bins.num_intersections == counts.sum() == len(ids)
+    assert (bins.tile_counts.numpy() == counts).all()
+    assert ties > 0, "the scene must hold Gaussians of equal depth in one tile"

@@ -186,3 +186,41 @@ def test_nonfinite_check_strides_over_every_value(device, threads):
         wp.launch(find_nonfinite_kernel, threads, inputs=[*arrays, threads], outputs=[flags], device=device)
         expected = [int(not np.isfinite(v).all()) for v in inputs]
         assert flags.numpy().tolist() == expected, trial
+
+
+def test_projection_writes_every_entry_and_flags_nonfinite_inputs(device):
+    """``project_gaussians_kernel`` overwrites every output entry (zeros for culled Gaussians, so
+    callers need no zero fill) and, given an int32 [4], flags exactly the inputs holding a NaN or
+    an infinity (numpy decides)."""
+    import warp as wp
+
+    from cdcgs.kernels import make_camera, project_gaussians_kernel
+
+    means, quats, scales, opacities, _, viewmat, K, width, height = warp_launch.demo_scene(n=200)
+    means[:20, 2] = -9.0  # behind the camera (it sits at z = -4 looking down +z)
+    opacities[20:30] = 0.002  # too transparent to reach 1/255
+    camera = make_camera(viewmat, K, width, height)
+    n = len(means)
+    specs = [(wp.vec2, 2, np.float32), (wp.vec3, 3, np.float32), (float, 1, np.float32), (float, 1, np.float32), (wp.vec2i, 2, np.int32)]
+
+    def project(inputs, fill, flags=None):
+        outputs = [wp.array(np.full((n, k) if k > 1 else n, fill, dtype=npt), dtype=dt, device=device) for dt, k, npt in specs]
+        arrays = [wp.array(a, dtype=dt, device=device) for a, dt in zip(inputs, (wp.vec3, wp.vec4, wp.vec3, float))]
+        wp.launch(project_gaussians_kernel, n, inputs=[*arrays, camera, 0], outputs=[*outputs, flags], device=device)
+        return [o.numpy() for o in outputs]
+
+    zero_filled = project((means, quats, scales, opacities), 0)
+    garbage_filled = project((means, quats, scales, opacities), 7)
+    culled = (zero_filled[4] == 0).all(axis=1)
+    assert culled[:30].all() and (~culled).sum() > 100
+    for a, b in zip(zero_filled, garbage_filled):
+        np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(6)
+    for trial in range(8):
+        inputs = [a.copy() for a in (means, quats, scales, opacities)]
+        for values in inputs:
+            if rng.random() < 0.5:
+                values.reshape(-1)[rng.integers(values.size)] = rng.choice([np.nan, np.inf, -np.inf])
+        flags = wp.zeros(4, dtype=wp.int32, device=device)
+        project(inputs, 0, flags)
+        assert flags.numpy().tolist() == [int(not np.isfinite(v).all()) for v in inputs], trial

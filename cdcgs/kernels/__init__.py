@@ -1,6 +1,6 @@
 """Pure-Warp kernels of cdcgs: usable with ``wp.launch`` and Warp arrays alone, no torch needed."""
 
-from .binning import TILE_SIZE, TileBins, bin_gaussians, count_tiles_kernel, emit_keys_kernel, tile_ranges_kernel
+from .binning import TILE_SIZE, TileBins, bin_gaussians, count_tiles_kernel, emit_keys_kernel, gather_counts_kernel, tile_ranges_kernel
 from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .projection import (
     Camera,
@@ -21,6 +21,7 @@ __all__ = [
     "blend_forward_kernel",
     "count_tiles_kernel",
     "emit_keys_kernel",
+    "gather_counts_kernel",
     "make_camera",
     "project_gaussians_kernel",
     "sh_to_color_backward_kernel",

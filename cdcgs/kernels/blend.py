@@ -233,7 +233,7 @@ def _blend_backward(sums: bool):
         """Adjoint of ``blend_forward_kernel`` for image, alpha (= 1 - transmittance) and depth sum.
 
         Also accumulates, per Gaussian, the sum over pixels of the absolute per-pixel gradient of its
-        2D mean (AbsGS).
+        2D mean (AbsGS). ``grad_alpha`` may be None (a loss that does not use alpha).
 
         Each pixel walks its list back to front from its last contributor, recovering the transmittance
         T_i in front of Gaussian i by division and keeping S, the colour (and depth) composited behind
@@ -264,7 +264,8 @@ def _blend_backward(sums: bool):
             g_color = grad_image[y, x]
             if wp.static(sums):
                 g_depth = grad_depth[y, x]
-            g_alpha = grad_alpha[y, x]
+            if grad_alpha.shape[0] > 0:  # None: the loss does not use alpha
+                g_alpha = grad_alpha[y, x]
             last = last_contributor[y, x]
         t = final_transmittance
         # d(color)/d(alpha_i) and d(alpha_pixel)/d(alpha_i) both carry T_final / (1 - alpha_i).

@@ -83,6 +83,23 @@ def quat_to_rotation(q: wp.vec4):
     )  # fmt: skip
 
 
+@wp.func
+def write_culled(
+    i: int,
+    means2d_out: wp.array(dtype=wp.vec2),
+    conics_out: wp.array(dtype=wp.vec3),
+    depths_out: wp.array(dtype=float),
+    opacities_out: wp.array(dtype=float),
+    radii_out: wp.array(dtype=wp.vec2i),
+):
+    """Zeros for a culled Gaussian (radius 0), so that the outputs need no zero fill beforehand."""
+    means2d_out[i] = wp.vec2(0.0, 0.0)
+    conics_out[i] = wp.vec3(0.0, 0.0, 0.0)
+    depths_out[i] = 0.0
+    opacities_out[i] = 0.0
+    radii_out[i] = wp.vec2i(0, 0)
+
+
 @wp.kernel
 def project_gaussians_kernel(
     gauss_means: wp.array(dtype=wp.vec3),
@@ -96,12 +113,28 @@ def project_gaussians_kernel(
     depths_out: wp.array(dtype=float),
     opacities_out: wp.array(dtype=float),
     radii_out: wp.array(dtype=wp.vec2i),
+    nonfinite_out: wp.array(dtype=wp.int32),
 ):
-    """EWA-project one Gaussian: pixel mean, conic, depth, opacity and per-axis pixel radius (0 = culled)."""
+    """EWA-project one Gaussian: pixel mean, conic, depth, opacity and per-axis pixel radius.
+
+    Every output is written: a culled Gaussian gets radius 0 and zeros. ``nonfinite_out``
+    (optional, None skips the check): entries 0..3 are set to 1 when a Gaussian's mean, quaternion,
+    scales or opacity hold a NaN or an infinity, so validating them costs no read of their own.
+    """
     i = wp.tid()
+    if nonfinite_out.shape[0] > 0:
+        # every writer writes 1: no atomics needed
+        if not wp.isfinite(gauss_means[i]):
+            nonfinite_out[0] = 1
+        if not wp.isfinite(gauss_quats[i]):
+            nonfinite_out[1] = 1
+        if not wp.isfinite(gauss_scales[i]):
+            nonfinite_out[2] = 1
+        if not wp.isfinite(gauss_opacities[i]):
+            nonfinite_out[3] = 1
     p = camera.rotation * gauss_means[i] + camera.translation
     if p[2] < camera.near:
-        radii_out[i] = wp.vec2i(0, 0)
+        write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
         return
 
     rotation = quat_to_rotation(gauss_quats[i])
@@ -133,7 +166,7 @@ def project_gaussians_kernel(
     c = c0 + COVARIANCE_DILATION
     det = a * c - b * b
     if det <= 0.0:
-        radii_out[i] = wp.vec2i(0, 0)
+        write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
         return
 
     opacity = gauss_opacities[i]
@@ -146,7 +179,7 @@ def project_gaussians_kernel(
             opacity = 0.0
     if opacity * 255.0 <= 1.0:
         # alpha = opacity * exp(power) <= opacity can never reach 1/255
-        radii_out[i] = wp.vec2i(0, 0)
+        write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
         return
 
     # Exact bounding box of {d : opacity * exp(-d^T conic d / 2) >= 1/255}: the 3DGS 3-sigma
@@ -162,7 +195,7 @@ def project_gaussians_kernel(
         or mean2d[1] + radius_y <= 0.0
         or mean2d[1] - radius_y >= float(camera.height)
     ):
-        radii_out[i] = wp.vec2i(0, 0)
+        write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
         return
 
     means2d_out[i] = mean2d
