@@ -191,7 +191,7 @@ def test_nonfinite_check_strides_over_every_value(device, threads):
 def test_projection_writes_every_entry_and_flags_nonfinite_inputs(device):
     """``project_gaussians_kernel`` overwrites every output entry (zeros for culled Gaussians, so
     callers need no zero fill) and, given an int32 [4], flags exactly the inputs holding a NaN or
-    an infinity (numpy decides)."""
+    an infinity (numpy decides); a shorter flag array is never written past its end."""
     import warp as wp
 
     from cdcgs.kernels import make_camera, project_gaussians_kernel
@@ -223,4 +223,9 @@ def test_projection_writes_every_entry_and_flags_nonfinite_inputs(device):
                 values.reshape(-1)[rng.integers(values.size)] = rng.choice([np.nan, np.inf, -np.inf])
         flags = wp.zeros(4, dtype=wp.int32, device=device)
         project(inputs, 0, flags)
-        assert flags.numpy().tolist() == [int(not np.isfinite(v).all()) for v in inputs], trial
+        expected = [int(not np.isfinite(v).all()) for v in inputs]
+        assert flags.numpy().tolist() == expected, trial
+        # A shorter array: its last entry takes the inputs beyond it, nothing is written past it.
+        padded = wp.zeros(4, dtype=wp.int32, device=device)
+        project(inputs, 0, padded[:2])
+        assert padded.numpy().tolist() == [expected[0], max(expected[1:]), 0, 0], trial

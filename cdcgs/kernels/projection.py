@@ -118,20 +118,23 @@ def project_gaussians_kernel(
     """EWA-project one Gaussian: pixel mean, conic, depth, opacity and per-axis pixel radius.
 
     Every output is written: a culled Gaussian gets radius 0 and zeros. ``nonfinite_out``
-    (optional, None skips the check): entries 0..3 are set to 1 when a Gaussian's mean, quaternion,
-    scales or opacity hold a NaN or an infinity, so validating them costs no read of their own.
+    (optional, None skips the check): entry k is set to 1 when a Gaussian's mean (k = 0),
+    quaternion (1), scales (2) or opacity (3) hold a NaN or an infinity, so validating them costs no
+    read of their own; a shorter array's last entry takes the inputs beyond it (an int32 [1]:
+    "some input is non-finite").
     """
     i = wp.tid()
-    if nonfinite_out.shape[0] > 0:
+    flags = nonfinite_out.shape[0]
+    if flags > 0:
         # every writer writes 1: no atomics needed
         if not wp.isfinite(gauss_means[i]):
             nonfinite_out[0] = 1
         if not wp.isfinite(gauss_quats[i]):
-            nonfinite_out[1] = 1
+            nonfinite_out[wp.min(1, flags - 1)] = 1
         if not wp.isfinite(gauss_scales[i]):
-            nonfinite_out[2] = 1
+            nonfinite_out[wp.min(2, flags - 1)] = 1
         if not wp.isfinite(gauss_opacities[i]):
-            nonfinite_out[3] = 1
+            nonfinite_out[wp.min(3, flags - 1)] = 1
     p = camera.rotation * gauss_means[i] + camera.translation
     if p[2] < camera.near:
         write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
