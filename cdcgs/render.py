@@ -239,7 +239,7 @@ class _Blend(torch.autograd.Function):
         means2d, conics, colors, opacities, depths, background, transmittance, last = ctx.saved_tensors
         bins = ctx.bins
         height, width = transmittance.shape
-        grad_image = _grad_or_zeros(grad_image, means2d.new_empty(height, width, 3))
+        grad_image = means2d.new_zeros(height, width, 3) if grad_image is None else grad_image.contiguous()
         # alpha = 1 - transmittance: a gradient on transmittance is minus one on alpha.
         grad_alpha = None if grad_transmittance is None else -grad_transmittance.contiguous()
         n = means2d.shape[0]
@@ -471,8 +471,7 @@ def rasterize(
 
         means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased, nonfinite)
         if sh is not None:
-            center = camera.center
-            center = wp.vec3(center[0], center[1], center[2])
+            center = wp.vec3(camera.center[0], camera.center[1], camera.center[2])
             colors = _ShColor.apply(means, sh, sh_degree, center, radii, nonfinite[len(checked) - 1 :])
 
         def read_count(offsets: wp.array) -> int:
