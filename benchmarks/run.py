@@ -38,15 +38,18 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-import bench_rasterize  # noqa: E402
-from bench_knn import make_points, time_cdcgs  # noqa: E402
+import bench_rasterize
+from bench_knn import make_points, time_cdcgs
 
-import cdcgs  # noqa: E402
+import cdcgs
 
 STAGES = [
     ("projection", ("project_gaussians", "projection_ewa_3dgs_fused_fwd")),
     ("sh colour", ("sh_to_color", "spherical_harmonics_fwd")),
-    ("binning + sort", ("count_tiles", "gather_counts", "emit_keys", "tile_ranges", "intersect_", "radix", "scan", "sort")),
+    (
+        "binning + sort",
+        ("count_tiles", "gather_counts", "emit_keys", "tile_ranges", "intersect_", "radix", "scan", "sort"),
+    ),
     ("blend forward", ("blend_forward", "rasterize_to_pixels_3dgs_fwd")),
     ("blend backward", ("blend_backward", "rasterize_to_pixels_3dgs_bwd")),
     ("sh colour backward", ("spherical_harmonics_bwd",)),
@@ -109,12 +112,16 @@ def section_raster(args, device, workload, report):
             images[name] = image.detach()
             step = _forward_backward(render, leaves)
             row = {
-                "section": "raster", "renderer": name, "n": n,
-                "forward_ms": bench_rasterize.timed(lambda render=render: _no_grad(render), device, args.warmup, args.iters),
+                "section": "raster",
+                "renderer": name,
+                "n": n,
+                "forward_ms": bench_rasterize.timed(
+                    lambda render=render: _no_grad(render), device, args.warmup, args.iters
+                ),
                 "forward_backward_ms": bench_rasterize.timed(step, device, args.warmup, args.iters),
                 "intersections": intersections,
                 "peak_gb": bench_rasterize.peak_gb(step, device),
-            }  # fmt: skip
+            }
             if "stages" in args.sections and device.type == "cuda":
                 row["stages_ms"], kernels = kernel_times(step, max(3, args.iters // 3))
                 # the slowest kernels by name (JSON only): where a stage's time goes
@@ -180,18 +187,32 @@ def section_complexity(args, device, workload, report):
         scene = workload.make_scene(n, device=args.device)
         leaves, renderers = bench_rasterize.make_renderers(scene)
         generator = torch.Generator(device="cpu").manual_seed(0)
-        hf_map = torch.randint(0, 256, (scene["height"], scene["width"]), generator=generator, dtype=torch.uint8).to(device)
+        hf_map = torch.randint(0, 256, (scene["height"], scene["width"]), generator=generator, dtype=torch.uint8).to(
+            device
+        )
         with torch.no_grad():
             _, _, info = cdcgs.rasterize(
-                leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["sh"],
-                viewmat=scene["viewmat"].cpu(), K=scene["K"].cpu(), width=scene["width"], height=scene["height"],
-            )  # fmt: skip
+                leaves["means"],
+                leaves["quats"],
+                leaves["scales"],
+                leaves["opacities"],
+                leaves["sh"],
+                viewmat=scene["viewmat"].cpu(),
+                K=scene["K"].cpu(),
+                width=scene["width"],
+                height=scene["height"],
+            )
         row = {
-            "section": "complexity", "n": n,
-            "gamma_pass_ms": bench_rasterize.timed(lambda: gaussian_complexity(info, hf_map), device, args.warmup, args.iters),
-        }  # fmt: skip
+            "section": "complexity",
+            "n": n,
+            "gamma_pass_ms": bench_rasterize.timed(
+                lambda info=info, hf_map=hf_map: gaussian_complexity(info, hf_map), device, args.warmup, args.iters
+            ),
+        }
         for name, render in renderers.items():
-            row[f"{name}_forward_ms"] = bench_rasterize.timed(lambda render=render: _no_grad(render), device, args.warmup, args.iters)
+            row[f"{name}_forward_ms"] = bench_rasterize.timed(
+                lambda render=render: _no_grad(render), device, args.warmup, args.iters
+            )
         report(row)
         del scene, leaves, renderers, info
 
@@ -203,13 +224,21 @@ def section_training(args, report):
     for path in args.training_run:
         with open(os.path.join(path, "metrics.json")) as f:
             metrics = json.load(f)
-        report({
-            "section": "training", "run": path, "strategy": metrics["strategy"].get("name"),
-            "iterations": metrics["iterations"], "iterations_per_second": metrics["iterations_per_second"],
-            "train_seconds": metrics["train_seconds"], "peak_gpu_memory_gb": metrics["peak_gpu_memory_gb"],
-            "psnr": metrics["test"].get("psnr"), "ssim": metrics["test"].get("ssim"),
-            "num_gaussians": metrics["num_gaussians"], "device": metrics["device"],
-        })  # fmt: skip
+        report(
+            {
+                "section": "training",
+                "run": path,
+                "strategy": metrics["strategy"].get("name"),
+                "iterations": metrics["iterations"],
+                "iterations_per_second": metrics["iterations_per_second"],
+                "train_seconds": metrics["train_seconds"],
+                "peak_gpu_memory_gb": metrics["peak_gpu_memory_gb"],
+                "psnr": metrics["test"].get("psnr"),
+                "ssim": metrics["test"].get("ssim"),
+                "num_gaussians": metrics["num_gaussians"],
+                "device": metrics["device"],
+            }
+        )
     if args.peer_training:
         with open(args.peer_training) as f:
             peer = json.load(f)
@@ -224,7 +253,9 @@ def print_tables(rows: list[dict], machine: str) -> None:
     print(f"\n## cdcgs benchmark suite on {machine}\n")
     raster = {(r["renderer"], r["n"]): r for r in rows if r["section"] == "raster"}
     if raster:
-        print("| N | cdcgs fwd ms | gsplat fwd ms | ratio | cdcgs fwd+bwd ms | gsplat fwd+bwd ms | ratio | peak GB cdcgs / gsplat |")
+        print(
+            "| N | cdcgs fwd ms | gsplat fwd ms | ratio | cdcgs fwd+bwd ms | gsplat fwd+bwd ms | ratio | peak GB cdcgs / gsplat |"
+        )
         print("|---|---|---|---|---|---|---|---|")
         for (name, n), r in raster.items():
             if name != "cdcgs":
@@ -241,7 +272,7 @@ def print_tables(rows: list[dict], machine: str) -> None:
             print("\nGPU kernel time per forward+backward, ms (torch.profiler)\n")
             print("| stage | " + " | ".join(f"{r['renderer']} {r['n'] // 1000}k" for r in staged) + " |")
             print("|---|" + "---|" * len(staged))
-            for stage in names + ["sum of kernels", "event time"]:
+            for stage in [*names, "sum of kernels", "event time"]:
                 cells = []
                 for r in staged:
                     if stage == "sum of kernels":
@@ -253,15 +284,21 @@ def print_tables(rows: list[dict], machine: str) -> None:
                 print(f"| {stage} | " + " | ".join(cells) + " |")
     for r in rows:
         if r["section"] == "agreement":
-            print(f"\nn={r['n']:,}: cdcgs vs gsplat image PSNR {r['psnr_db']:.1f} dB, max |diff| {r['max_abs_diff']:.1e}")
+            print(
+                f"\nn={r['n']:,}: cdcgs vs gsplat image PSNR {r['psnr_db']:.1f} dB, max |diff| {r['max_abs_diff']:.1e}"
+            )
     knn_rows = [r for r in rows if r["section"] == "knn"]
     if knn_rows:
         print("\n| KNN (k=3) | N | cdcgs ms | peer ms | ratio |\n|---|---|---|---|---|")
         for r in knn_rows:
-            print(f"| {r['points']} | {r['n']:,} | {r['cdcgs_ms']:.1f} | {_f(r, 'peer_ms', 1)} | {_ratio_keys(r, 'cdcgs_ms', 'peer_ms')} |")
+            print(
+                f"| {r['points']} | {r['n']:,} | {r['cdcgs_ms']:.1f} | {_f(r, 'peer_ms', 1)} | {_ratio_keys(r, 'cdcgs_ms', 'peer_ms')} |"
+            )
     cx = [r for r in rows if r["section"] == "complexity"]
     if cx:
-        print("\n| Γ pass | N | Γ pass ms (one view) | cdcgs forward ms | gsplat forward ms | Γ / gsplat forward |\n|---|---|---|---|---|---|")
+        print(
+            "\n| Γ pass | N | Γ pass ms (one view) | cdcgs forward ms | gsplat forward ms | Γ / gsplat forward |\n|---|---|---|---|---|---|"
+        )
         for r in cx:
             print(
                 f"| complexity | {r['n']:,} | {r['gamma_pass_ms']:.2f} | {r['cdcgs_forward_ms']:.2f} | "
@@ -294,9 +331,13 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sections", nargs="+", choices=sections, default=sections, help="what to run")
     parser.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000, 3_000_000], help="Gaussian counts")
-    parser.add_argument("--knn-sizes", type=int, nargs="+", default=[1_000_000, 3_000_000], help="clustered point-set sizes for knn")
+    parser.add_argument(
+        "--knn-sizes", type=int, nargs="+", default=[1_000_000, 3_000_000], help="clustered point-set sizes for knn"
+    )
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
-    parser.add_argument("--workload", default=bench_rasterize.DEFAULT_WORKLOAD, help="path of the shared bench/workload.py")
+    parser.add_argument(
+        "--workload", default=bench_rasterize.DEFAULT_WORKLOAD, help="path of the shared bench/workload.py"
+    )
     parser.add_argument("--scene", default=None, help="COLMAP scene whose points3D the knn section also times")
     parser.add_argument("--training-run", nargs="+", default=None, help="finished cdcgs train output folders")
     parser.add_argument("--peer-training", default=None, help="JSON of the peer's training run to quote")

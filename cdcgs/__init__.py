@@ -1,10 +1,12 @@
 """cdcgs: 3D Gaussian Splatting with CDC-GS densification, on NVIDIA Warp kernels (CPU and CUDA).
 
-``cdcgs.rasterize`` is the torch face; ``cdcgs.kernels`` holds the pure-Warp kernels, which import
-no torch, so that they can be launched from any Warp program.
+``cdcgs.rasterize`` is the torch face (``cdcgs.prepare_camera`` checks and builds a camera once for
+repeated renders); ``cdcgs.kernels`` holds the pure-Warp kernels, which import no torch, so that
+they can be launched from any Warp program. Importing cdcgs initialises nothing: Warp's runtime
+starts on the first render.
 """
 
-__all__ = ["RasterizeInfo", "rasterize"]
+__all__ = ["PreparedCamera", "RasterizeInfo", "prepare_camera", "rasterize"]
 __version__ = "0.1.0"
 
 

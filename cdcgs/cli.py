@@ -14,7 +14,10 @@ import os
 import sys
 import typing
 
-from .errors import InputError
+from .datasets.download import MIPNERF360_SCENES
+from .errors import InputError, OptionError
+
+__all__ = ["build_parser", "main", "option_reference", "orbit_path"]
 
 log = logging.getLogger("cdcgs")
 
@@ -31,23 +34,59 @@ def _base_type(hint):
     return hint, False
 
 
-def _add_dataclass_options(parser, cls, prefix: str = "", skip=()):
+def _help(f, default_text: str) -> str:
+    return f"{f.metadata.get('help', f.name.replace('_', ' '))} (default: {default_text})"
+
+
+def _add_field(parser, f, hint, *, prefix: str, dest: str, default, default_text: str) -> None:
+    kind, _ = _base_type(hint)
+    choices = f.metadata.get("choices")
+    metavar = f.metadata.get("metavar")
+    if kind is bool:
+        action = argparse.BooleanOptionalAction
+        parser.add_argument(
+            _flag(f.name, prefix), dest=dest, action=action, default=default, help=_help(f, default_text)
+        )
+    else:
+        metavar = None if choices else (metavar or kind.__name__.upper())
+        parser.add_argument(
+            _flag(f.name, prefix),
+            dest=dest,
+            type=kind,
+            default=default,
+            choices=choices,
+            metavar=metavar,
+            help=_help(f, default_text),
+        )
+
+
+def _default_text(default) -> str:
+    if default == "":
+        return "none, required"
+    return "none" if default is None else str(default)
+
+
+def _add_dataclass_options(parser, cls, prefix: str = "", group=None, title: str = "training"):
+    """One option per field of ``cls``, in an option group ``title``; a nested dataclass field
+    becomes a group titled by its help (its options prefixed by the field's name, except ``data``)."""
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        if f.name in skip:
-            continue
-        kind, optional = _base_type(hints[f.name])
+        kind, _ = _base_type(hints[f.name])
         if dataclasses.is_dataclass(kind):
-            sub_prefix = "" if f.name == "data" else f"{prefix}{f.name}_"
-            _add_dataclass_options(parser, kind, sub_prefix)
+            sub_group = parser.add_argument_group(f.metadata.get("help", f.name))
+            _add_dataclass_options(parser, kind, "" if f.name == "data" else f"{prefix}{f.name}_", sub_group)
             continue
-        help_text = f.metadata.get("help", f.name.replace("_", " "))
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        dest = (prefix + f.name).replace("-", "_")
-        if kind is bool:
-            parser.add_argument(_flag(f.name, prefix), dest=dest, action=argparse.BooleanOptionalAction, default=default, help=f"{help_text} (default: {default})")
-        else:
-            parser.add_argument(_flag(f.name, prefix), dest=dest, type=kind, default=default, metavar=kind.__name__.upper(), help=f"{help_text} (default: {default})")
+        group = group or parser.add_argument_group(title)
+        _add_field(
+            group,
+            f,
+            hints[f.name],
+            prefix=prefix,
+            dest=prefix + f.name,
+            default=default,
+            default_text=_default_text(default),
+        )
 
 
 def _build_dataclass(cls, values: dict, prefix: str = ""):
@@ -62,47 +101,84 @@ def _build_dataclass(cls, values: dict, prefix: str = ""):
     return cls(**kwargs)
 
 
-def _strategy_option_names() -> dict:
-    from .train.strategy import registry
+STRATEGY_PREFIX = "strategy__"
 
-    names = {}
-    for cls, _ in registry().values():
-        hints = typing.get_type_hints(cls)
-        for f in dataclasses.fields(cls):
-            names.setdefault(f.name, (hints[f.name], cls.__doc__ or ""))
-    return names
+
+def _preset_defaults(f, presets: dict) -> str:
+    """'X' or 'X; Y in presets a, b' for a strategy option whose presets change its default."""
+    by_value: dict = {}
+    for name, options in presets.items():
+        if f.name in options and options[f.name] != f.default:
+            by_value.setdefault(options[f.name], []).append(name)
+    text = _default_text(f.default)
+    for value, names in by_value.items():
+        text += f"; {value} in {', '.join(names)}"
+    return text
 
 
 def _add_train_parser(sub):
+    from .train.cdc import CDC
     from .train.config import TrainConfig
 
-    p = sub.add_parser("train", help="train a scene", description="Train 3D Gaussians on a scene.", formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = sub.add_parser("train", help="train a scene", description="Train 3D Gaussians on a scene.")
     _add_dataclass_options(p, TrainConfig)
-    group = p.add_argument_group("strategy options", "override the chosen strategy's preset hyperparameters (default: the preset's)")
-    for name, (hint, _) in sorted(_strategy_option_names().items()):
-        kind, _ = _base_type(hint)
-        if kind is bool:
-            group.add_argument(_flag(name), dest=f"strategy__{name}", action=argparse.BooleanOptionalAction, default=None, help=f"strategy: {name.replace('_', ' ')}")
-        else:
-            group.add_argument(_flag(name), dest=f"strategy__{name}", type=kind, default=None, metavar=kind.__name__.upper(), help=f"strategy: {name.replace('_', ' ')}")
+    group = p.add_argument_group("viewer", "watch the model in a browser while it trains (as cdcgs view)")
+    group.add_argument(
+        "--view", action="store_true", help="serve a browser viewer of the model while it trains (default: off)"
+    )
+    group.add_argument(
+        "--view-port",
+        type=int,
+        default=8080,
+        metavar="INT",
+        help="port of the viewer; 0: any free port (default: 8080)",
+    )
+    group.add_argument(
+        "--view-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="address the viewer listens on; 0.0.0.0 lets other machines open it (default: 127.0.0.1)",
+    )
+    group = p.add_argument_group("strategy options", "override the chosen preset's hyperparameters (docs/cdc-gs.md)")
+    from .train.presets import PRESETS
+
+    hints = typing.get_type_hints(CDC)
+    for f in sorted(CDC.options(), key=lambda f: f.name):
+        _add_field(
+            group,
+            f,
+            hints[f.name],
+            prefix="",
+            dest=STRATEGY_PREFIX + f.name,
+            default=None,
+            default_text=_preset_defaults(f, PRESETS),
+        )
     p.set_defaults(func=cmd_train)
 
 
 def cmd_train(args) -> int:
+    from .train.cdc import CDC
     from .train.config import TrainConfig
-    from .train.trainer import Trainer, TrainingDiverged
+    from .train.trainer import Trainer, TrainingDiverged, resolve_device
 
     values = vars(args)
     if not values.get("data"):
-        raise SystemExit("cdcgs train: --data DIR is required (a COLMAP folder or one with transforms.json)")
+        raise OptionError("--data DIR is required (a COLMAP folder or one with transforms.json)")
     config = _build_dataclass(TrainConfig, values)
-    options = {k[len("strategy__") :]: v for k, v in values.items() if k.startswith("strategy__") and v is not None}
-    if config.view:
-        from .viewer import check_port_free
+    options = {
+        k[len(STRATEGY_PREFIX) :]: v for k, v in values.items() if k.startswith(STRATEGY_PREFIX) and v is not None
+    }
+    CDC.from_preset(config.strategy, options)  # refuse bad options before the scene loads
+    resolve_device(config.device)
+    callbacks = []
+    if args.view:
+        from .viewer import TrainingViewer, ViewerSettings, check_port_free
 
-        check_port_free(config.view_host, config.view_port)  # before the scene loads, not after
+        settings = ViewerSettings(host=args.view_host, port=args.view_port, max_fps=10.0)
+        check_port_free(settings.host, settings.port)  # before the scene loads, not after
+        callbacks.append(TrainingViewer(settings))
     try:
-        result = Trainer(config, options).run()
+        result = Trainer(config, options, callbacks=callbacks).run()
     except TrainingDiverged as err:
         print(f"cdcgs train: {err}", file=sys.stderr)
         return 3
@@ -117,49 +193,51 @@ def _print_result(out: str, result: dict) -> None:
     if test.get("views"):
         lpips = f"{test['lpips']:.4f}" if test.get("lpips") is not None else "unavailable"
         print(f"test: PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f}, LPIPS {lpips} over {test['views']} views")
-    print(f"{result['num_gaussians']} Gaussians, {result['train_seconds']:.1f} s training ({result['iterations_per_second']:.1f} it/s) on {result['device']}")
+    print(
+        f"{result['num_gaussians']} Gaussians, {result['train_seconds']:.1f} s training ({result['iterations_per_second']:.1f} it/s) on {result['device']}"
+    )
     print(f"outputs in {os.path.abspath(out)}")
 
 
 def _load_run(out: str, device_name: str):
-    """(config, scene, model) of a finished or interrupted run in ``out``."""
-    from .io import load_checkpoint, load_scene, read_ply
-    from .train.model import GaussianModel
-    from .train.trainer import config_from_dict, resolve_device
+    """(run, scene) of a finished or interrupted run in ``out``, the scene's images loaded."""
+    from .train.outputs import load_run
+    from .train.trainer import resolve_device
 
-    config_path = os.path.join(out, "config.json")
-    if not os.path.isfile(config_path):
-        raise InputError(out, "not a cdcgs output folder (no config.json)")
-    with open(config_path) as f:
-        config = config_from_dict(json.load(f)["train"])
     device = resolve_device(device_name)
-    ply_path = os.path.join(out, "point_cloud.ply")
-    if os.path.isfile(ply_path):
-        model = GaussianModel.from_ply(read_ply(ply_path), device=device)
-    else:
-        model = GaussianModel.from_state_dict(load_checkpoint(os.path.join(out, "checkpoint.pt"))["model"], device=device)
-        model.sh_degree = model.max_sh_degree
-    d = config.data
-    scene = load_scene(d.data, images=d.images, factor=d.factor, test_every=d.test_every, train_on_all=d.train_on_all, device=device, skip_missing=d.skip_missing)
-    return config, scene, model
+    run = load_run(out, device)
+    return run, run.load_scene(device)
+
+
+def _background(run):
+    import torch
+
+    from .train.config import background_color
+
+    return torch.tensor(background_color(run.config.background) or (0.0, 0.0, 0.0), device=run.model.device)
 
 
 def cmd_eval(args) -> int:
-    import torch
-
     from .train.evaluate import evaluate
 
-    config, scene, model = _load_run(args.out_dir, args.device)
-    background = torch.ones(3, device=model.device) if config.background == "white" else torch.zeros(3, device=model.device)
-    metrics = evaluate(model, scene.test, background=background, antialiased=config.antialiased, save_dir=os.path.join(args.out_dir, "test_renders"))
+    run, scene = _load_run(args.out_dir, args.device)
+    save_dir = os.path.join(args.out_dir, "test_renders")
+    metrics = evaluate(
+        run.model, scene.test, background=_background(run), antialiased=run.config.antialiased, save_dir=save_dir
+    )
     path = os.path.join(args.out_dir, "metrics.json")
-    existing = json.load(open(path)) if os.path.isfile(path) else {}
+    existing = {}
+    if os.path.isfile(path):
+        with open(path) as f:
+            existing = json.load(f)
     existing["test"] = {k: v for k, v in metrics.items() if k != "per_view"}
     existing["per_view"] = metrics.get("per_view", [])
     with open(path, "w") as f:
         json.dump(existing, f, indent=2)
     lpips = f"{metrics['lpips']:.4f}" if metrics.get("lpips") is not None else "unavailable"
-    print(f"test: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, LPIPS {lpips}, {metrics['render_fps']:.1f} frames/s over {metrics['views']} views")
+    print(
+        f"test: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, LPIPS {lpips}, {metrics['render_fps']:.1f} frames/s over {metrics['views']} views"
+    )
     print(f"written to {path} and {os.path.join(args.out_dir, 'test_renders')}")
     return 0
 
@@ -209,20 +287,26 @@ def cmd_render(args) -> int:
     import torch
 
     from .render import rasterize
+    from .train.outputs import view_stem
 
     if args.video:
         try:
             import imageio_ffmpeg  # noqa: F401
         except ImportError:
-            raise ValueError("--video needs the imageio-ffmpeg package (pip install imageio-ffmpeg); without it, render PNGs") from None
-    config, scene, model = _load_run(args.out_dir, args.device)
-    background = torch.ones(3, device=model.device) if config.background == "white" else torch.zeros(3, device=model.device)
+            raise OptionError(
+                "--video needs the imageio-ffmpeg package (pip install imageio-ffmpeg); without it, render PNGs"
+            ) from None
+    run, scene = _load_run(args.out_dir, args.device)
+    model, config, background = run.model, run.config, _background(run)
     if args.path == "orbit":
         reference = scene.train[0]
-        cameras = [(f"orbit_{k:04d}", pose, reference.K, reference.width, reference.height) for k, pose in enumerate(orbit_path(scene.train, args.frames))]
+        cameras = [
+            (f"orbit_{k:04d}", pose, reference.K, reference.width, reference.height)
+            for k, pose in enumerate(orbit_path(scene.train, args.frames))
+        ]
     else:
         views = scene.test if args.path == "test" else scene.train
-        cameras = [(os.path.splitext(v.name.replace(os.sep, "_"))[0], v.viewmat, v.K, v.width, v.height) for v in views]
+        cameras = [(view_stem(v.name), v.viewmat, v.K, v.width, v.height) for v in views]
     frames = []
     out_dir = args.out or os.path.join(args.out_dir, f"renders_{args.path}")
     if not args.video:
@@ -231,7 +315,15 @@ def cmd_render(args) -> int:
 
     with torch.no_grad():
         for name, viewmat, K, width, height in cameras:
-            image, _, _ = rasterize(**model.render_args(), viewmat=viewmat, K=K, width=width, height=height, background=background, antialiased=config.antialiased)
+            image, _, _ = rasterize(
+                **model.render_args(),
+                viewmat=viewmat,
+                K=K,
+                width=width,
+                height=height,
+                background=background,
+                antialiased=config.antialiased,
+            )
             frame = (image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
             if args.video:
                 frames.append(frame)
@@ -252,10 +344,11 @@ def cmd_render(args) -> int:
 def cmd_export(args) -> int:
     from .io import load_checkpoint, write_ply
     from .train.model import GaussianModel
+    from .train.outputs import CHECKPOINT
 
     if not os.path.isdir(args.out_dir):
         raise InputError(args.out_dir, "no such output folder")
-    model = GaussianModel.from_state_dict(load_checkpoint(os.path.join(args.out_dir, "checkpoint.pt"))["model"])
+    model = GaussianModel.from_state_dict(load_checkpoint(os.path.join(args.out_dir, CHECKPOINT))["model"])
     write_ply(args.ply, model.to_ply())
     print(f"wrote {model.num} Gaussians to {args.ply}")
     return 0
@@ -280,17 +373,22 @@ def cmd_download(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from .train.trainer import plot_correlation
+    from .train.outputs import plot_correlation
 
     histories = {}
     for out in args.out_dirs:
         try:
-            history = json.load(open(os.path.join(out, "history.json")))
-            config = json.load(open(os.path.join(out, "config.json")))
+            with open(os.path.join(out, "history.json")) as f:
+                history = json.load(f)
+            with open(os.path.join(out, "config.json")) as f:
+                config = json.load(f)
         except (OSError, ValueError) as err:
             raise InputError(out, f"not a finished cdcgs run ({err})") from None
         if not any("correlation" in e for e in history.get("strategy", [])):
-            raise InputError(out, "the run logged no complexity-density correlation (train with a CDC strategy, or --log-correlation)")
+            raise InputError(
+                out,
+                "the run logged no complexity-density correlation (train with a CDC strategy, or --log-correlation)",
+            )
         histories[f"{config['train']['strategy']} ({os.path.basename(os.path.normpath(out))})"] = history
     plot_correlation(histories, args.out)
     print(f"wrote {args.out}")
@@ -298,8 +396,11 @@ def cmd_compare(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="cdcgs", description="3D Gaussian Splatting with CDC-GS densification on Warp kernels.")
+    parser = argparse.ArgumentParser(
+        prog="cdcgs", description="3D Gaussian Splatting with CDC-GS densification on Warp kernels."
+    )
     sub = parser.add_subparsers(dest="command", required=True)
+    parser.commands = sub.choices  # name -> the command's parser, for option_reference
     _add_train_parser(sub)
     p = sub.add_parser("eval", help="evaluate a trained run on its test views")
     p.add_argument("out_dir", help="output folder of cdcgs train")
@@ -318,14 +419,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out_dir", help="output folder of cdcgs train")
     p.add_argument("ply", help="PLY file to write")
     p.set_defaults(func=cmd_export)
-    p = sub.add_parser("view", help="look at a model in the browser (an output folder or any 3DGS PLY)",
-                       description="Serve a browser viewer of a model: colour, depth, alpha and CDC-GS complexity, with the training cameras.")
+    p = sub.add_parser(
+        "view",
+        help="look at a model in the browser (an output folder or any 3DGS PLY)",
+        description="Serve a browser viewer of a model: colour, depth, alpha and CDC-GS complexity, with the training cameras.",
+    )
     p.add_argument("path", help="output folder of cdcgs train, or a PLY in the 3DGS layout")
     p.add_argument("--port", type=int, default=8080, help="port to serve on (default: 8080; 0: any free port)")
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0 lets other machines open it)")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default: 127.0.0.1, this machine only; 0.0.0.0 lets other machines open it)",
+    )
     p.add_argument("--device", default="auto", help="torch device that renders (default: cuda when there is one)")
     p.add_argument("--max-fps", type=float, default=30.0, help="frames per second per browser, at most (default: 30)")
-    p.add_argument("--max-height", type=int, default=None, help="frame height cap in pixels (default: 1080 on CUDA, 540 on the CPU)")
+    p.add_argument(
+        "--max-height",
+        type=int,
+        default=None,
+        help="frame height cap in pixels (default: 1080 on CUDA, 540 on the CPU)",
+    )
     p.set_defaults(func=cmd_view)
     p = sub.add_parser("compare", help="plot the complexity-density correlation of several runs (CDC-GS Fig. 4b)")
     p.add_argument("out_dirs", nargs="+", help="output folders of cdcgs train")
@@ -333,12 +446,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_compare)
     p = sub.add_parser("download", help="download a public dataset scene")
     p.add_argument("dataset", choices=["mipnerf360"], help="dataset")
-    p.add_argument("--scene", required=True, help="scene name, e.g. garden")
+    p.add_argument("--scene", required=True, choices=MIPNERF360_SCENES, help="scene name")
     p.add_argument("--dest", default="data/360_v2", help="where the scene folder goes (default: data/360_v2)")
     p.add_argument("--url", default=None, help="archive URL (default: the official MipNeRF-360 archive)")
     p.add_argument("--delete-archive", action="store_true", help="delete the downloaded archive after extraction")
     p.set_defaults(func=cmd_download)
     return parser
+
+
+def option_reference() -> str:
+    """The ``--help`` of every command as Markdown: the option reference at the end of
+    docs/cli.md (regenerate it with ``python -c "from cdcgs.cli import option_reference as r; print(r())"``)."""
+    previous = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal's width
+    try:
+        parser = build_parser()
+        parts = [
+            "## Option reference",
+            "",
+            "<!-- generated by cdcgs.cli.option_reference(); a test keeps it current -->",
+            "",
+        ]
+        for name, command in parser.commands.items():
+            parts += [f"### cdcgs {name}", "", "```text", command.format_help().rstrip(), "```", ""]
+        return "\n".join(parts)
+    finally:
+        if previous is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = previous
 
 
 def main(argv=None) -> int:
@@ -347,12 +483,15 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING  # no Warp banner or module-load lines in the output
     logging.basicConfig(level=logging.WARNING, format="cdcgs: %(message)s")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as stop:  # --help, or argparse's own message for a bad option (exit status 2)
+        return stop.code
     if getattr(args, "frames", 1) is not None and getattr(args, "frames", 1) <= 0:
         parser.error("--frames must be positive")
     try:
         return args.func(args)
-    except (InputError, ValueError) as err:
+    except (InputError, OptionError) as err:
         print(f"cdcgs {args.command}: {err}", file=sys.stderr)
         return 2
 

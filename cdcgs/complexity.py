@@ -6,7 +6,9 @@ of the 2-D Haar DWT (ptwt), LL band zeroed, inverse DWT, absolute value, min-max
 (kornia) for the ablation. Kept as uint8 (x 255) on the training device.
 
 Gamma (section 2): per view, the max over the pixels a Gaussian composites of
-HF(p) * w_i(p) / w_max(p), computed by ``complexity_kernel`` (exact atomic max).
+HF(p) * w_i(p) / w_max(p), computed by ``complexity_kernel`` (exact atomic max); across views the
+max (or the mean over the views that see it). :func:`complexity_over_views` is the one place that
+aggregates over views: the CDC-GS strategy, the viewer and the benchmarks call it.
 """
 
 from __future__ import annotations
@@ -16,11 +18,24 @@ import ptwt
 import torch
 import warp as wp
 
-from .interop import warp_scope, wp_array
-from .kernels.binning import TILE_SIZE
+from ._interop import warp_scope, wp_array
+from .kernels._constants import BLOCK_SIZE
 from .kernels.blend import complexity_kernel
 
+__all__ = [
+    "AGGREGATIONS",
+    "METHODS",
+    "ComplexityMaps",
+    "ViewComplexity",
+    "complexity_map",
+    "complexity_over_views",
+    "gaussian_complexity",
+    "high_frequency",
+    "luma",
+]
+
 METHODS = ("dwt", "dwt2", "sobel", "scharr", "laplacian")
+AGGREGATIONS = ("max", "mean")
 LUMA = (0.299, 0.587, 0.114)
 
 
@@ -65,32 +80,129 @@ def complexity_map(image: torch.Tensor, method: str = "dwt") -> torch.Tensor:
     return (high_frequency(luma(image), method) * 255.0 + 0.5).to(torch.uint8)
 
 
-def gaussian_complexity(info, hf_map: torch.Tensor, opacities: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def gaussian_complexity(
+    info, hf_map: torch.Tensor, opacities: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(max [N], sum [N], count [N] int32) over one render's pixels of HF * w / w_max per Gaussian.
 
     ``info`` is the RasterizeInfo of the render; ``hf_map`` its view's [H, W] uint8 map.
     Gaussians that composite no pixel get max 0 and count 0.
     """
     if hf_map.shape != (info.height, info.width) or hf_map.dtype != torch.uint8:
-        raise ValueError(f"hf_map must be a uint8 [{info.height}, {info.width}] map, got {hf_map.dtype} {list(hf_map.shape)}")
+        raise ValueError(
+            f"hf_map must be a uint8 [{info.height}, {info.width}] map, got {hf_map.dtype} {list(hf_map.shape)}"
+        )
     n = info.means2d.shape[0]
     device = info.means2d.device
     opacities = info.opacities if opacities is None else opacities
     max_out = torch.zeros(n, device=device)
     sum_out = torch.zeros(n, device=device)
     count_out = torch.zeros(n, dtype=torch.int32, device=device)
-    tiles_y, tiles_x = info.tile_ranges.shape[:2]
+    tiles_y, tiles_x = info.tiles_y, info.tiles_x
     with warp_scope(device):
         wp.launch(
             complexity_kernel,
-            tiles_x * tiles_y * TILE_SIZE * TILE_SIZE,
+            tiles_x * tiles_y * BLOCK_SIZE,
             inputs=[
-                wp_array(info.tile_ranges.reshape(-1, 2), wp.int32), wp_array(info.sorted_gauss_ids, wp.int32),
-                wp_array(info.means2d.detach().contiguous(), wp.vec2), wp_array(info.conics.detach().contiguous(), wp.vec3),
-                wp_array(opacities.detach().contiguous(), wp.float32), wp_array(info.last_contributor, wp.int32),
-                wp_array(hf_map.to(device).contiguous(), wp.uint8), info.width, info.height, tiles_x,
-            ],  # fmt: skip
+                wp_array(info.tile_ranges, wp.int32),
+                wp_array(info.sorted_gauss_ids, wp.int32),
+                wp_array(info.means2d.detach().contiguous(), wp.vec2),
+                wp_array(info.conics.detach().contiguous(), wp.vec3),
+                wp_array(opacities.detach().contiguous(), wp.float32),
+                wp_array(info.last_contributor, wp.int32),
+                wp_array(hf_map.to(device).contiguous(), wp.uint8),
+                info.width,
+                info.height,
+                tiles_x,
+            ],
             outputs=[wp_array(max_out, wp.float32), wp_array(sum_out, wp.float32), wp_array(count_out, wp.int32)],
-            block_dim=TILE_SIZE * TILE_SIZE,
+            block_dim=BLOCK_SIZE,
         )
     return max_out, sum_out, count_out
+
+
+class ComplexityMaps:
+    """The complexity maps of a list of views, computed on first use and kept (a cache owned by
+    whoever owns it: a training run, a viewer). Views whose image is not loaded yet are loaded.
+
+    ``maps[i]`` is the [H, W] uint8 map of ``views[i]`` on ``device``.
+    """
+
+    def __init__(self, views, method: str = "dwt", device="cpu"):
+        if method not in METHODS:
+            raise ValueError(f"complexity method must be one of {', '.join(METHODS)}, got {method!r}")
+        self.views = list(views)
+        self.method = method
+        self.device = torch.device(device)
+        self._maps: list[torch.Tensor] | None = None
+
+    @property
+    def computed(self) -> bool:
+        return self._maps is not None
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        return self.all()[index]
+
+    def all(self) -> list[torch.Tensor]:
+        if self._maps is None:
+            from .io.views import load_images
+
+            missing = [view for view in self.views if view.image is None]
+            if missing:
+                load_images(missing, device=self.device, progress=False)
+            self._maps = [complexity_map(view.image.to(self.device), self.method) for view in self.views]
+        return self._maps
+
+
+class ViewComplexity:
+    """Γ [N] of every Gaussian aggregated over views, one render at a time.
+
+    ``pixel_aggregation`` within a view: the max over its pixels of HF w / w_max, or their mean;
+    ``view_aggregation`` across views: the max, or the mean over the views that see the Gaussian.
+    """
+
+    def __init__(self, num_gaussians: int, device, *, pixel_aggregation: str = "max", view_aggregation: str = "max"):
+        for name, value in (("pixel_aggregation", pixel_aggregation), ("view_aggregation", view_aggregation)):
+            if value not in AGGREGATIONS:
+                raise ValueError(f"{name} must be one of {', '.join(AGGREGATIONS)}, got {value!r}")
+        self.pixel_aggregation = pixel_aggregation
+        self.view_aggregation = view_aggregation
+        self.total = torch.zeros(num_gaussians, device=device)
+        self.views_seen = torch.zeros(num_gaussians, device=device)
+
+    @classmethod
+    def from_state(cls, total: torch.Tensor, views_seen: torch.Tensor, **aggregation) -> ViewComplexity:
+        """An accumulator over existing [N] tensors (updated in place), e.g. a strategy's state."""
+        accumulator = cls(0, total.device, **aggregation)
+        accumulator.total, accumulator.views_seen = total, views_seen
+        return accumulator
+
+    def add(self, info, hf_map: torch.Tensor) -> None:
+        """Add one render (its RasterizeInfo) of a view with complexity map ``hf_map``."""
+        max_out, sum_out, count = gaussian_complexity(info, hf_map)
+        per_view = max_out if self.pixel_aggregation == "max" else sum_out / count.clamp_min(1)
+        if self.view_aggregation == "max":
+            torch.maximum(self.total, per_view, out=self.total)
+        else:
+            self.total += per_view
+            self.views_seen += (count > 0).float()
+
+    def result(self) -> torch.Tensor:
+        """[N] Γ; 0 for a Gaussian that no view saw."""
+        return self.total if self.view_aggregation == "max" else self.total / self.views_seen.clamp_min(1)
+
+
+@torch.no_grad()
+def complexity_over_views(render, maps: ComplexityMaps, num_gaussians: int, device, **aggregation) -> torch.Tensor:
+    """[N] Γ over every view of ``maps``: ``render(i) -> (image, alpha, info)`` draws view ``i``.
+
+    ``aggregation``: ``pixel_aggregation`` and ``view_aggregation`` of :class:`ViewComplexity`.
+    """
+    accumulator = ViewComplexity(num_gaussians, device, **aggregation)
+    for index in range(len(maps)):
+        _, _, info = render(index)
+        accumulator.add(info, maps[index])
+    return accumulator.result()

@@ -1,6 +1,10 @@
-"""The one exception cdcgs raises for bad user input read from files and folders."""
+"""The exceptions cdcgs raises for bad user input: a file or folder (:class:`InputError`), an
+option (:class:`OptionError`). The command line reports both in one line and exits with 2; every
+other exception is a defect and keeps its traceback."""
 
 import os
+
+__all__ = ["InputError", "OptionError"]
 
 
 class InputError(ValueError):
@@ -14,3 +18,7 @@ class InputError(ValueError):
         self.path = os.fspath(path) if path is not None else None
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
+
+
+class OptionError(ValueError):
+    """An option (a command-line flag or a configuration value) has a value cdcgs refuses."""

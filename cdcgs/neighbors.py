@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from .interop import torch_allocators, warp_scope, wp_array
-from .kernels import knn as knn_kernels
+from ._interop import torch_allocators, warp_scope, wp_array
+from .kernels.knn import MAX_K, knn_search
 
 __all__ = ["density", "initial_scales", "knn"]
 
@@ -34,16 +34,16 @@ def knn(points: torch.Tensor, k: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
         raise ValueError(f"points must have shape [N, 3], got {list(points.shape)}")
     points = points.detach().contiguous()
     n = points.shape[0]
-    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= knn_kernels.MAX_K:
-        raise ValueError(f"k must be an int in 1..{knn_kernels.MAX_K}, got {k!r}")
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_K:
+        raise ValueError(f"k must be an int in 1..{MAX_K}, got {k!r}")
     sqdist = torch.empty(n, k, dtype=torch.float32, device=points.device)
     index = torch.empty(n, k, dtype=torch.int32, device=points.device)
     with warp_scope(points.device):
-        knn_kernels.knn(
+        knn_search(
             wp_array(points, wp.vec3),
             k,
-            sqdist_out=wp.from_torch(sqdist, requires_grad=False),
-            index_out=wp.from_torch(index, requires_grad=False),
+            sqdist_out=wp_array(sqdist, wp.float32),
+            index_out=wp_array(index, wp.int32),
             allocate=torch_allocators(points.device)[0],
         )
     return sqdist, index.long()
@@ -59,7 +59,7 @@ def initial_scales(points: torch.Tensor, rule: str = "3dgs", k: int = 3) -> torc
 
     rule "3dgs": sqrt of the mean of the squared distances to the k nearest points, with the
     mean floored at 1e-7 (as 3DGS). rule "cdc": sqrt of their geometric mean, floored at 1e-7
-    (CDC-GS, ../CDC-GS.md section 3).
+    (CDC-GS, section 3 of the paper).
     """
     sqdist, _ = knn(points, k)
     if rule == "3dgs":

@@ -1,7 +1,9 @@
 """The torch face of the rasterizer: validation, zero-copy sharing with Warp, autograd.
 
 ``rasterize`` is the one public entry point. Tensors stay on their device; Warp reads and writes
-torch's memory directly (``wp.from_torch``) on torch's current CUDA stream.
+torch's memory directly (``wp.from_torch``) on torch's current CUDA stream. A camera is checked on
+every call, unless it comes as a :class:`PreparedCamera` (:func:`prepare_camera`), checked and built
+once by whoever renders the same view again and again.
 """
 
 from __future__ import annotations
@@ -13,26 +15,33 @@ import numpy as np
 import torch
 import warp as wp
 
-from .interop import torch_allocators as _torch_allocators
-from .interop import warp_scope as _warp_scope
-from .interop import wp_arg as _arg
-from .interop import wp_array as _wp
-from .kernels.binning import TILE_SIZE, TileBins, bin_gaussians
+from ._interop import torch_allocators as _torch_allocators
+from ._interop import warp_scope as _warp_scope
+from ._interop import wp_arg as _arg
+from ._interop import wp_array as _wp
+from .kernels._checks import find_nonfinite_kernel
+from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
+from .kernels.binning import TileBins, bin_gaussians
 from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
-from .kernels.checks import find_nonfinite_kernel
 from .kernels.projection import (
-    Camera, make_camera, project_gaussians_kernel, sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel,
+    Camera,
+    make_camera,
+    project_gaussians_kernel,
+    sh_to_color_backward_kernel,
+    sh_to_color_grouped_backward_kernel,
     sh_to_color_kernel,
-)  # fmt: skip
+)
 
-__all__ = ["RasterizeInfo", "rasterize"]
+__all__ = ["PreparedCamera", "RasterizeInfo", "prepare_camera", "rasterize"]
+
 
 @dataclass
 class RasterizeInfo:
     """What a render knows besides the image. Per-Gaussian tensors are [N, ...] in input order.
 
     Attributes:
-        width, height: image size in pixels; tile_size: tile side in pixels (16).
+        width, height: image size in pixels; tile_size: tile side in pixels (``TILE_SIZE``, 16);
+            tiles_x, tiles_y: tiles per row and per column.
         means2d: [N, 2] pixel coordinates of the projected means (0 for culled Gaussians). A node
             of the autograd graph: call ``means2d.retain_grad()`` before ``backward`` to read the
             screen-space positional gradient, or use :meth:`positional_gradient`.
@@ -43,7 +52,9 @@ class RasterizeInfo:
         radii: [N, 2] int32 per-axis pixel radius of the footprint (0 = culled).
         visible: [N] bool, radii > 0 (in front of the near plane and overlapping the image).
         tile_counts: [N] int32 tiles touched; num_intersections: their sum.
-        tile_ranges: [tiles_y, tiles_x, 2] int32 [start, end) into ``sorted_gauss_ids``.
+        tile_ranges: [tiles_y * tiles_x, 2] int32 [start, end) into ``sorted_gauss_ids`` of each
+            tile, row-major (tile ty * tiles_x + tx), as the kernels take it;
+            ``tile_ranges.view(tiles_y, tiles_x, 2)`` indexes it by tile row and column.
         sorted_gauss_ids: [num_intersections] int32 Gaussian ids ordered by (tile, depth).
         last_contributor: [H, W] int32 index into ``sorted_gauss_ids`` of each pixel's last
             composited Gaussian (start - 1 when none).
@@ -73,6 +84,16 @@ class RasterizeInfo:
     _absgrad: dict = field(default_factory=dict, repr=False)  # shared with the blend's backward pass
 
     @property
+    def tiles_x(self) -> int:
+        """Tiles per image row: ceil(width / tile_size)."""
+        return -(-self.width // self.tile_size)
+
+    @property
+    def tiles_y(self) -> int:
+        """Tiles per image column: ceil(height / tile_size)."""
+        return -(-self.height // self.tile_size)
+
+    @property
     def visible(self) -> torch.Tensor:
         return (self.radii > 0).all(dim=-1)  # computed when asked: two launches a render saved
 
@@ -97,17 +118,15 @@ class RasterizeInfo:
         if absolute:
             grad = self.means2d_absgrad
             if grad is None:
-                raise RuntimeError("call info.retain_absgrad() before backward() to read the absolute positional gradient")
+                raise RuntimeError(
+                    "call info.retain_absgrad() before backward() to read the absolute positional gradient"
+                )
         else:
             grad = self.means2d.grad
             if grad is None:
                 raise RuntimeError("call info.means2d.retain_grad() before backward() to read the positional gradient")
         scale = grad.new_tensor([0.5 * self.width, 0.5 * self.height])
         return (grad * scale).norm(dim=-1)
-
-
-# --------------------------------------------------------------------------------------------
-# Warp plumbing
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,9 +161,17 @@ class _Project(torch.autograd.Function):
         means, quats, scales, opacities, means2d, conics, depths, out_opacities, radii = ctx.saved_tensors
         n = means.shape[0]
         # One zero fill for the four gradients the adjoint adds to: [means | quats | scales | opacities].
-        grads_in = [part.view(t.shape) for part, t in zip(means.new_zeros(11 * n).split([3 * n, 4 * n, 3 * n, n]), (means, quats, scales, opacities))]
+        grads_in = [
+            part.view(t.shape)
+            for part, t in zip(
+                means.new_zeros(11 * n).split([3 * n, 4 * n, 3 * n, n]), (means, quats, scales, opacities)
+            )
+        ]
         grads_out = [
-            _grad_or_zeros(g, t) for g, t in zip((grad_means2d, grad_conics, grad_depths, grad_opacities_out), (means2d, conics, depths, out_opacities))
+            _grad_or_zeros(g, t)
+            for g, t in zip(
+                (grad_means2d, grad_conics, grad_depths, grad_opacities_out), (means2d, conics, depths, out_opacities)
+            )
         ]
         with _warp_scope(means.device):
             wp.launch(
@@ -160,11 +187,24 @@ class _Project(torch.autograd.Function):
 
 
 def _project_inputs(means, quats, scales, opacities, camera, antialiased):
-    return [_arg(means, wp.vec3), _arg(quats, wp.vec4), _arg(scales, wp.vec3), _arg(opacities, wp.float32), camera, int(antialiased)]
+    return [
+        _arg(means, wp.vec3),
+        _arg(quats, wp.vec4),
+        _arg(scales, wp.vec3),
+        _arg(opacities, wp.float32),
+        camera,
+        int(antialiased),
+    ]
 
 
 def _project_outputs(means2d, conics, depths, opacities, radii):
-    return [_arg(means2d, wp.vec2), _arg(conics, wp.vec3), _arg(depths, wp.float32), _arg(opacities, wp.float32), _arg(radii, wp.vec2i)]
+    return [
+        _arg(means2d, wp.vec2),
+        _arg(conics, wp.vec3),
+        _arg(depths, wp.float32),
+        _arg(opacities, wp.float32),
+        _arg(radii, wp.vec2i),
+    ]
 
 
 def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
@@ -193,15 +233,20 @@ class _ShColor(torch.autograd.Function):
         grad_means = torch.empty_like(means)
         grad_sh = torch.empty_like(sh)
         grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
-        grouped = means.device.type == "cuda"
+        grouped = means.device.type == "cuda"  # one thread per SH coefficient (half-warp shuffles)
         with _warp_scope(means.device):
             wp.launch(
                 sh_to_color_grouped_backward_kernel if grouped else sh_to_color_backward_kernel,
-                means.shape[0] * (16 if grouped else 1),
+                means.shape[0] * (MAX_SH_COEFFICIENTS if grouped else 1),
                 inputs=[
-                    _arg(means, wp.vec3), _arg(sh, wp.vec3), ctx.sh_degree, ctx.camera_center, _arg(radii, wp.vec2i),
-                    _arg(colors, wp.vec3), _arg(grad_colors, wp.vec3),
-                ],  # fmt: skip
+                    _arg(means, wp.vec3),
+                    _arg(sh, wp.vec3),
+                    ctx.sh_degree,
+                    ctx.camera_center,
+                    _arg(radii, wp.vec2i),
+                    _arg(colors, wp.vec3),
+                    _arg(grad_colors, wp.vec3),
+                ],
                 outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3)],
             )
         return grad_means, grad_sh, None, None, None, None
@@ -209,7 +254,9 @@ class _ShColor(torch.autograd.Function):
 
 class _Blend(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, depths, background, bins: TileBins, width, height, absgrad_request):
+    def forward(
+        ctx, means2d, conics, colors, opacities, depths, background, bins: TileBins, width, height, absgrad_request
+    ):
         device = means2d.device
         image = means2d.new_empty(height, width, 3)
         transmittance = means2d.new_empty(height, width)
@@ -218,14 +265,23 @@ class _Blend(torch.autograd.Function):
         with _warp_scope(device):
             wp.launch(
                 blend_forward_kernel,
-                bins.tiles_x * bins.tiles_y * TILE_SIZE * TILE_SIZE,
+                bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
                 inputs=[
-                    bins.tile_ranges, bins.gauss_ids,
+                    bins.tile_ranges,
+                    bins.sorted_gauss_ids,
                     *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
-                    _arg(background, wp.vec3), width, height, bins.tiles_x,
-                ],  # fmt: skip
-                outputs=[_arg(image, wp.vec3), _arg(transmittance, wp.float32), _arg(depth_sum, wp.float32), _arg(last, wp.int32)],
-                block_dim=TILE_SIZE * TILE_SIZE,
+                    _arg(background, wp.vec3),
+                    width,
+                    height,
+                    bins.tiles_x,
+                ],
+                outputs=[
+                    _arg(image, wp.vec3),
+                    _arg(transmittance, wp.float32),
+                    _arg(depth_sum, wp.float32),
+                    _arg(last, wp.int32),
+                ],
+                block_dim=BLOCK_SIZE,
             )
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, transmittance, last)
         ctx.bins = bins
@@ -253,21 +309,34 @@ class _Blend(torch.autograd.Function):
                 absgrad = means2d.new_zeros(n, 2)
         # One zero fill for all the gradients the kernel adds to: [means2d | conics | colors | opacities (| depths)].
         sizes = [2 * n, 3 * n, 3 * n, n] + ([n] if sums else [])
-        grads = [part.view(t.shape) for part, t in zip(means2d.new_zeros(sum(sizes)).split(sizes), (means2d, conics, colors, opacities, depths))]
-        grad_outputs = [*_blend_gaussian_inputs(*grads[:4], grads[4] if sums else None), _arg(absgrad, wp.vec2) if sums else None]
+        grads = [
+            part.view(t.shape)
+            for part, t in zip(means2d.new_zeros(sum(sizes)).split(sizes), (means2d, conics, colors, opacities, depths))
+        ]
+        grad_outputs = [
+            *_blend_gaussian_inputs(*grads[:4], grads[4] if sums else None),
+            _arg(absgrad, wp.vec2) if sums else None,
+        ]
         with _warp_scope(means2d.device):
             wp.launch(
                 blend_backward_kernel if sums else blend_backward_lean_kernel,
-                bins.tiles_x * bins.tiles_y * TILE_SIZE * TILE_SIZE,
+                bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
                 inputs=[
-                    bins.tile_ranges, bins.gauss_ids,
+                    bins.tile_ranges,
+                    bins.sorted_gauss_ids,
                     *_blend_gaussian_inputs(means2d, conics, colors, opacities, depths),
-                    _arg(background, wp.vec3), width, height, bins.tiles_x,
-                    _arg(transmittance, wp.float32), _arg(last, wp.int32),
-                    _arg(grad_image, wp.vec3), None if grad_alpha is None else _arg(grad_alpha, wp.float32), _arg(grad_depth_sum, wp.float32) if sums else None,
-                ],  # fmt: skip
+                    _arg(background, wp.vec3),
+                    width,
+                    height,
+                    bins.tiles_x,
+                    _arg(transmittance, wp.float32),
+                    _arg(last, wp.int32),
+                    _arg(grad_image, wp.vec3),
+                    None if grad_alpha is None else _arg(grad_alpha, wp.float32),
+                    _arg(grad_depth_sum, wp.float32) if sums else None,
+                ],
                 outputs=grad_outputs,
-                block_dim=TILE_SIZE * TILE_SIZE,
+                block_dim=BLOCK_SIZE,
             )
         if not sums:
             grads.append(None)  # no gradient reaches the depths
@@ -296,49 +365,73 @@ def _check_tensor(name: str, value, shape: tuple, device: torch.device | None) -
         expected = "[" + ", ".join("N" if s is None else ("*" if s == -1 else str(s)) for s in shape) + "]"
         raise ValueError(f"{name} must have shape {expected}, got {list(value.shape)}")
     if device is not None and value.device != device:
-        raise ValueError(f"{name} is on {value.device} but means is on {device}; all Gaussian tensors must share a device")
+        raise ValueError(
+            f"{name} is on {value.device} but means is on {device}; all Gaussian tensors must share a device"
+        )
     return value.contiguous()
 
 
-_cameras: dict = {}
 # Threads of the finiteness check: enough to keep a large GPU's memory busy, each looping over
 # its share (one thread per value cost ~0.4 ms more at 3M Gaussians on an H100).
 _CHECK_THREADS = 1 << 18
 
 
-def _check_camera(viewmat, K, width, height, near_plane):
+# --------------------------------------------------------------------------------------------
+# Cameras
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedCamera:
+    """A pinhole camera checked once and built for the kernels: ``rasterize(..., camera=prepared)``.
+
+    Made by :func:`prepare_camera`. A caller that renders the same views again and again (a
+    training, an evaluation, a viewer) keeps one per view and skips the checks and the building
+    that ``rasterize(viewmat=..., K=...)`` repeats on every call. Immutable; a moved camera is a new
+    one.
+
+    Attributes:
+        width, height: image size in pixels.
+        near_plane: Gaussians with camera z below this are culled.
+        camera: the Warp :class:`cdcgs.kernels.Camera` struct the projection kernel reads
+            (world-to-camera rotation and translation, intrinsics, image size, near plane).
+        center: the camera centre in world coordinates, -R^T t (``wp.vec3``), from which the SH
+            colour's view directions start.
+    """
+
+    width: int
+    height: int
+    near_plane: float
+    camera: Camera
+    center: wp.vec3
+
+
+def prepare_camera(viewmat, K, width: int, height: int, near_plane: float = 0.01) -> PreparedCamera:
+    """Check a pinhole camera and build it for the kernels, once.
+
+    Args:
+        viewmat: [4, 4] world-to-camera matrix (camera x right, y down, z forward), a rotation and a
+            translation. K: [3, 3] intrinsics in pixels; (cx, cy) continuous, pixel (i, j) centred at
+            (i+0.5, j+0.5). Either may be a tensor on any device, a numpy array or nested lists
+            (read on the host, in float64).
+        width, height: image size in pixels (positive ints).
+        near_plane: Gaussians with camera z below this are culled (positive, finite).
+
+    Returns:
+        A :class:`PreparedCamera` for ``rasterize(..., camera=...)``.
+
+    Raises:
+        ValueError: a matrix of the wrong shape, with non-finite entries, a viewmat that is not a
+            rotation and translation, non-positive focal lengths, image size or near plane.
+    """
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise ValueError(f"{name} must be a positive int (pixels), got {value!r}")
     if not (isinstance(near_plane, (int, float)) and math.isfinite(near_plane) and near_plane > 0):
         raise ValueError(f"near_plane must be a positive finite number, got {near_plane!r}")
-    # A training renders the same few hundred cameras over and over: a camera already checked and
-    # built is reused, found by value (the matrices' entries), so a changed matrix is a new camera.
-    key = (_matrix_key(viewmat), _matrix_key(K), width, height, float(near_plane))
-    if key[0] is not None and key[1] is not None:
-        camera = _cameras.get(key)
-        if camera is None:
-            if len(_cameras) >= 4096:
-                _cameras.clear()
-            camera = _cameras[key] = _build_camera(viewmat, K, width, height, near_plane)
-        return camera
-    return _build_camera(viewmat, K, width, height, near_plane)
-
-
-def _matrix_key(value):
-    """The entries of a small tensor or numpy matrix as a hashable tuple (None for anything else,
-    which is then checked on every call)."""
-    if isinstance(value, torch.Tensor) and value.numel() <= 16:
-        return (tuple(value.shape), tuple(value.detach().reshape(-1).tolist()))
-    if isinstance(value, np.ndarray) and value.size <= 16 and value.dtype.kind == "f":
-        return (value.shape, tuple(value.ravel().tolist()))
-    return None
-
-
-def _build_camera(viewmat, K, width, height, near_plane):
     mats = {}
     for name, value, size in (("viewmat", viewmat, 4), ("K", K, 3)):
-        # numpy, not torch: these checks run on every render and torch's per-op overhead showed
+        # numpy, not torch: without a PreparedCamera these checks run on every render, and torch's
+        # per-op overhead showed
         try:
             if isinstance(value, torch.Tensor):
                 value = value.detach().to("cpu", torch.float64).numpy()
@@ -358,7 +451,33 @@ def _build_camera(viewmat, K, width, height, near_plane):
         raise ValueError("viewmat's upper-left 3x3 block must be a rotation (world-to-camera, no scale)")
     if intr[0, 0] <= 0 or intr[1, 1] <= 0:
         raise ValueError(f"K must have positive focal lengths, got fx={intr[0, 0]}, fy={intr[1, 1]}")
-    return make_camera(view, intr, width, height, near_plane)
+    camera = make_camera(view, intr, width, height, near_plane)
+    center = wp.vec3(camera.center[0], camera.center[1], camera.center[2])
+    return PreparedCamera(width=width, height=height, near_plane=float(near_plane), camera=camera, center=center)
+
+
+def _resolve_camera(camera, viewmat, K, width, height, near_plane) -> PreparedCamera:
+    """The camera of a ``rasterize`` call: the prepared one, or one checked and built now."""
+    loose = {"viewmat": viewmat, "K": K, "width": width, "height": height}
+    if camera is not None:
+        given = [name for name, value in loose.items() if value is not None] + (
+            ["near_plane"] if near_plane is not None else []
+        )
+        if given:
+            raise ValueError(
+                f"pass either camera (a PreparedCamera) or viewmat, K, width and height, not both (also got {', '.join(given)})"
+            )
+        if not isinstance(camera, PreparedCamera):
+            raise ValueError(
+                f"camera must be a PreparedCamera (from cdcgs.render.prepare_camera), got {type(camera).__name__}"
+            )
+        return camera
+    missing = [name for name, value in loose.items() if value is None]
+    if missing:
+        raise ValueError(
+            f"pass viewmat, K, width and height, or camera=prepare_camera(...); missing: {', '.join(missing)}"
+        )
+    return prepare_camera(viewmat, K, width, height, 0.01 if near_plane is None else near_plane)
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,15 +491,16 @@ def rasterize(
     opacities: torch.Tensor,
     sh: torch.Tensor | None = None,
     *,
-    viewmat,
-    K,
-    width: int,
-    height: int,
+    viewmat=None,
+    K=None,
+    width: int | None = None,
+    height: int | None = None,
+    camera: PreparedCamera | None = None,
     sh_degree: int | None = None,
     colors: torch.Tensor | None = None,
     background=None,
     antialiased: bool = False,
-    near_plane: float = 0.01,
+    near_plane: float | None = None,
     render_depth: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
     """Render 3D Gaussians from one pinhole camera, differentiably.
@@ -394,12 +514,15 @@ def rasterize(
             intrinsics in pixels; (cx, cy) continuous, pixel (i, j) centred at (i+0.5, j+0.5).
             Either may be a tensor on any device, a numpy array or nested lists (read on the host).
         width, height: image size in pixels.
+        camera: instead of viewmat, K, width, height (and near_plane): a :class:`PreparedCamera`
+            from :func:`prepare_camera`, checked and built once. Exactly one of the two ways.
         sh_degree: 0..3, degree of ``sh`` to evaluate; default sqrt(K) - 1.
         colors: [N, 3] colours to composite instead of ``sh`` (exactly one of the two).
         background: [3] colour behind the Gaussians (tensor or sequence); default black.
             Differentiable when it is a tensor that requires grad.
         antialiased: multiply opacity by sqrt(det cov / det dilated cov) (Mip-Splatting).
-        near_plane: Gaussians with camera z below this are culled.
+        near_plane: Gaussians with camera z below this are culled (default 0.01; with ``camera``,
+            the prepared camera's).
         render_depth: also return the expected depth map in ``info.depth``.
 
     Returns:
@@ -408,7 +531,8 @@ def rasterize(
     Raises:
         ValueError: an argument of the wrong type, dtype, shape or device, non-finite values (in
             ``sh``: those of the Gaussians in view, the only ones read), an empty scene or an empty
-            image; the message names the argument.
+            image, both or neither of ``camera`` and viewmat/K/width/height; the message names the
+            argument.
     """
     means = _check_tensor("means", means, (None, 3), None)
     device = means.device
@@ -427,8 +551,8 @@ def rasterize(
             sh_degree = math.isqrt(k) - 1
             if (sh_degree + 1) ** 2 != k:
                 raise ValueError(f"sh has {k} coefficients per channel, not a square; pass sh_degree")
-        if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
-            raise ValueError(f"sh_degree must be an int in 0..3, got {sh_degree!r}")
+        if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= MAX_SH_DEGREE:
+            raise ValueError(f"sh_degree must be an int in 0..{MAX_SH_DEGREE}, got {sh_degree!r}")
         if k < (sh_degree + 1) ** 2:
             raise ValueError(f"sh has {k} coefficients per channel, degree {sh_degree} needs {(sh_degree + 1) ** 2}")
     else:
@@ -448,7 +572,8 @@ def rasterize(
         if not all(math.isfinite(v) for v in values):
             raise ValueError("background has non-finite values (NaN or inf)")
         background = means.new_tensor(values)
-    camera = _check_camera(viewmat, K, width, height, near_plane)
+    prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
+    width, height = prepared.width, prepared.height
 
     # One Warp scope for the whole forward pass (the autograd functions' own scopes nest for free).
     with _warp_scope(device):
@@ -465,14 +590,17 @@ def rasterize(
             flat = [means[:0].view(-1)] * 4 + [t.view(-1) for t in own_check]
             threads = min(max(t.numel() for t in flat), _CHECK_THREADS)
             wp.launch(
-                find_nonfinite_kernel, threads,
-                inputs=[*(_arg(t, wp.float32) for t in flat), threads], outputs=[_arg(nonfinite, wp.int32)],
-            )  # fmt: skip
+                find_nonfinite_kernel,
+                threads,
+                inputs=[*(_arg(t, wp.float32) for t in flat), threads],
+                outputs=[_arg(nonfinite, wp.int32)],
+            )
 
-        means2d, conics, depths, composited_opacities, radii = _Project.apply(means, quats, scales, opacities, camera, antialiased, nonfinite)
+        means2d, conics, depths, composited_opacities, radii = _Project.apply(
+            means, quats, scales, opacities, prepared.camera, antialiased, nonfinite
+        )
         if sh is not None:
-            center = wp.vec3(camera.center[0], camera.center[1], camera.center[2])
-            colors = _ShColor.apply(means, sh, sh_degree, center, radii, nonfinite[len(checked) - 1 :])
+            colors = _ShColor.apply(means, sh, sh_degree, prepared.center, radii, nonfinite[len(checked) - 1 :])
 
         def read_count(offsets: wp.array) -> int:
             # The single host synchronisation of a render: the intersection count sizes the sort
@@ -514,8 +642,8 @@ def rasterize(
         radii=radii,
         tile_counts=wp.to_torch(bins.tile_counts),
         num_intersections=bins.num_intersections,
-        tile_ranges=wp.to_torch(bins.tile_ranges).view(bins.tiles_y, bins.tiles_x, 2),
-        sorted_gauss_ids=wp.to_torch(bins.gauss_ids),
+        tile_ranges=wp.to_torch(bins.tile_ranges),
+        sorted_gauss_ids=wp.to_torch(bins.sorted_gauss_ids),
         last_contributor=last,
         transmittance=transmittance,
         depth=depth,

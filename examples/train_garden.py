@@ -15,8 +15,9 @@ from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.train.config import DataConfig, TrainConfig
 from cdcgs.train.trainer import Trainer
 
-# The best measured so far (bonsai, 800 x 533, 30k iterations, README): CDC-GS with the online
-# complexity schedule, 31.85 dB with 0.92M Gaussians against 31.49 dB / 1.25M for adc.
+# The best measured so far (bonsai, 800 x 533, 30k iterations, docs/cdc-gs.md): CDC-GS with the
+# online complexity schedule, 31.87 dB with 0.91M Gaussians against 31.49 dB / 1.25M for the 3DGS
+# rules (then called adc).
 BEST_STRATEGY = "cdc"
 BEST_OPTIONS = {"complexity_schedule": "online"}
 
@@ -26,10 +27,14 @@ PROCEDURAL_SCHEDULE = {"densify_from": 100, "densify_until": 450, "densify_every
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default="data/360_v2/garden", help="garden scene folder (default: data/360_v2/garden)")
+    parser.add_argument(
+        "--data", default="data/360_v2/garden", help="garden scene folder (default: data/360_v2/garden)"
+    )
     parser.add_argument("--out", default="outputs/garden", help="output folder (default: outputs/garden)")
     parser.add_argument("--device", default="auto", help="torch device (default: cuda when there is one)")
-    parser.add_argument("--iters", type=int, default=None, help="iterations (default: 30000 on garden, 600 on the procedural scene)")
+    parser.add_argument(
+        "--iters", type=int, default=None, help="iterations (default: 30000 on garden, 600 on the procedural scene)"
+    )
     parser.add_argument("--strategy", default=BEST_STRATEGY, help=f"densification strategy (default: {BEST_STRATEGY})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args()
@@ -53,12 +58,21 @@ def main():
         print("Training on the procedural scene (40 views of 96 x 72, every 8th held out).")
         data = DataConfig(data=scene_dir)
         iters = args.iters or 600
-        options.update({k: min(v, max(iters - 1, 1)) if k != "reset_every" else v for k, v in PROCEDURAL_SCHEDULE.items()})
+        options.update(
+            {k: min(v, max(iters - 1, 1)) if k != "reset_every" else v for k, v in PROCEDURAL_SCHEDULE.items()}
+        )
     config = TrainConfig(
-        data=data, out=args.out, strategy=args.strategy, iters=iters, device=args.device,
-        sh_every=1000 if iters >= 10_000 else max(iters // 6, 1), eval_every=7000 if iters >= 10_000 else 0,
-        checkpoint_every=5000 if iters >= 10_000 else 0, progress=not args.no_progress, overwrite=True,
-    )  # fmt: skip
+        data=data,
+        out=args.out,
+        strategy=args.strategy,
+        iters=iters,
+        device=args.device,
+        sh_every=1000 if iters >= 10_000 else max(iters // 6, 1),
+        eval_every=7000 if iters >= 10_000 else 0,
+        checkpoint_every=5000 if iters >= 10_000 else 0,
+        progress=not args.no_progress,
+        overwrite=True,
+    )
     if os.path.isfile(os.path.join(args.out, "checkpoint.pt")):
         print(f"replacing the previous run in {args.out}")
     result = Trainer(config, options).run()
@@ -66,7 +80,9 @@ def main():
     lpips = f"{test['lpips']:.4f}" if test.get("lpips") is not None else "unavailable"
     print(f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f}, LPIPS {lpips} ({test['views']} views)")
     print(f"{result['num_gaussians']} Gaussians, {result['train_seconds']:.1f} s of training on {result['device']}")
-    print(f"outputs in {os.path.abspath(args.out)}: metrics.json, test_renders/, curves.png, point_cloud.ply, checkpoint.pt")
+    print(
+        f"outputs in {os.path.abspath(args.out)}: metrics.json, test_renders/, curves.png, point_cloud.ply, checkpoint.pt"
+    )
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from cdcgs.kernels import (
-    TILE_SIZE,
+    BLOCK_SIZE,
     bin_gaussians,
     blend_forward_kernel,
     make_camera,
@@ -61,13 +61,24 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
     background = wp.array([wp.vec3(1.0, 1.0, 1.0)], dtype=wp.vec3, device=device)
     wp.launch(
         blend_forward_kernel,
-        dim=bins.tiles_x * bins.tiles_y * TILE_SIZE * TILE_SIZE,
-        inputs=[bins.tile_ranges, bins.gauss_ids, means2d, conics, colors, composited_opacities, depths,
-                background, width, height, bins.tiles_x],
+        dim=bins.tiles_x * bins.tiles_y * BLOCK_SIZE,  # one thread per pixel of every tile
+        inputs=[
+            bins.tile_ranges,  # [tiles_y * tiles_x, 2]: [start, end) of each tile's list
+            bins.sorted_gauss_ids,
+            means2d,
+            conics,
+            colors,
+            composited_opacities,
+            depths,
+            background,
+            width,
+            height,
+            bins.tiles_x,
+        ],
         outputs=[image, transmittance, depth_sum, last_contributor],
-        block_dim=TILE_SIZE * TILE_SIZE,  # one tile per block
+        block_dim=BLOCK_SIZE,  # one tile per block
         device=device,
-    )  # fmt: skip
+    )
     return image.numpy()
 
 

@@ -48,7 +48,10 @@ class Scene:
     height: int
 
     def to(self, device):
-        fields = {k: (v.to(device) if isinstance(v, torch.Tensor) and k not in ("viewmat", "K") else v) for k, v in vars(self).items()}
+        fields = {
+            k: (v.to(device) if isinstance(v, torch.Tensor) and k not in ("viewmat", "K") else v)
+            for k, v in vars(self).items()
+        }
         return Scene(**fields)
 
     def tensors(self):
@@ -96,7 +99,7 @@ def make_scene(n=300, width=61, height=37, sh_degree=3, seed=0, hard_cases=True)
         transparent = torch.rand(m, generator=g) * 0.01  # nearly transparent, on both sides of 1/255
         # ... but not within 5% of 1/255, where whether a pixel passes the alpha threshold depends
         # on float rounding (the Gaussian is flat near its centre), so float32 and float64 differ.
-        near = ((transparent * 255 - 1).abs() < 0.05)
+        near = (transparent * 255 - 1).abs() < 0.05
         opacities[5 * m : 6 * m] = torch.where(near, transparent * 0.8, transparent)
         opacities[6 * m : 7 * m] = 1.0 - torch.rand(m, generator=g) * 1e-3  # nearly opaque
     R, t = viewmat[:3, :3], viewmat[:3, 3]
@@ -111,3 +114,11 @@ def make_scene(n=300, width=61, height=37, sh_degree=3, seed=0, hard_cases=True)
     sh = torch.randn(n, k, 3, generator=g) * 0.2
     sh[:, 0] = torch.rand(n, 3, generator=g) * 1.6 - 0.4
     return Scene(means.contiguous(), quats, scales, opacities, sh, viewmat, K, width, height)
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """A procedural COLMAP scene of 16 views of 48 x 36 pixels and 1500 points."""
+    from cdcgs.datasets.procedural import make_procedural_scene
+
+    return make_procedural_scene(tmp_path_factory.mktemp("scene"), views=16, width=48, height=36, points=1500)

@@ -56,15 +56,16 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     q = q / q.norm(dim=-1, keepdim=True)
     w, x, y, z = q.unbind(-1)
     rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    rows = [entry for row in rows for entry in row]
     return torch.stack(rows, -1).reshape(*q.shape[:-1], 3, 3)
 
 
 def project(means, quats, scales, opacities, viewmat, K, width, height, antialiased=False, near=0.01):
-    """Per-Gaussian screen quantities in float64: mean2d, conic matrix, depth, opacity, valid mask."""
+    """Per-Gaussian screen quantities in float64: mean2d, conic matrix, depths, opacity, valid mask."""
     R, t = viewmat[:3, :3], viewmat[:3, 3]
     p = means @ R.T + t
     z = p[:, 2]
@@ -103,9 +104,22 @@ def sh_colors(means, sh, degree, viewmat):
 
 
 def render(
-    means, quats, scales, opacities, sh=None, *, viewmat, K, width, height, sh_degree=None, colors=None,
-    background=None, antialiased=False, near=0.01,
-):  # fmt: skip
+    means,
+    quats,
+    scales,
+    opacities,
+    sh=None,
+    *,
+    viewmat,
+    K,
+    width,
+    height,
+    sh_degree=None,
+    colors=None,
+    background=None,
+    antialiased=False,
+    near=0.01,
+):
     """Dense float64 render: image [H, W, 3], alpha [H, W], expected depth [H, W], weights [H*W, N].
 
     The weights are those of each pixel (row-major) for each Gaussian, 0 where it is not composited.
@@ -116,10 +130,14 @@ def render(
         colors = sh_colors(means, sh, sh_degree, viewmat)
     if background is None:
         background = torch.zeros(3, dtype=means.dtype)
-    mean2d, conic, depth, opac, valid = project(means, quats, scales, opacities, viewmat, K, width, height, antialiased, near)
-    order = torch.sort(depth.detach(), stable=True).indices
+    mean2d, conic, depths, opac, valid = project(
+        means, quats, scales, opacities, viewmat, K, width, height, antialiased, near
+    )
+    order = torch.sort(depths.detach(), stable=True).indices
     order = order[valid[order]]
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype), indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype), indexing="ij"
+    )
     pix = torch.stack([xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5], -1)  # [P, 2]
     d = mean2d[order][None] - pix[:, None]  # [P, M, 2]
     Q = conic[order]
@@ -137,7 +155,7 @@ def render(
     final_t = trans_after[:, -1] if trans_after.shape[1] else torch.ones(pix.shape[0], dtype=means.dtype)
     image = weights @ colors[order] + final_t[:, None] * background
     acc = 1 - final_t
-    depth_sum = weights @ depth[order]
+    depth_sum = weights @ depths[order]
     exp_depth = torch.where(acc > 0, depth_sum / acc.clamp_min(1e-10), torch.zeros_like(acc))
     full_weights = torch.zeros(pix.shape[0], means.shape[0], dtype=means.dtype)
     full_weights[:, order] = weights.detach()

@@ -6,6 +6,7 @@ import math
 import os
 
 import numpy as np
+import torch
 from PIL import Image
 
 
@@ -24,7 +25,10 @@ def look_at_w2c(eye, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)) -> np.ndarray:
 
 
 def orbit_poses(n: int, radius: float = 4.0, height: float = -1.0) -> list[np.ndarray]:
-    return [look_at_w2c((radius * math.sin(a), height, -radius * math.cos(a))) for a in np.linspace(0, 2 * math.pi, n, endpoint=False)]
+    return [
+        look_at_w2c((radius * math.sin(a), height, -radius * math.cos(a)))
+        for a in np.linspace(0, 2 * math.pi, n, endpoint=False)
+    ]
 
 
 def pattern_image(width: int, height: int, seed: int) -> np.ndarray:
@@ -65,7 +69,19 @@ def distorted_line_image(width, height, fx, fy, cx, cy, dist, line=(0.15, 1.0, -
     return image
 
 
-def write_colmap_scene(root, *, n_images=10, width=64, height=48, model="PINHOLE", params=None, factors=(), text=False, points=None, with_images=True):
+def write_colmap_scene(
+    root,
+    *,
+    n_images=10,
+    width=64,
+    height=48,
+    model="PINHOLE",
+    params=None,
+    factors=(),
+    text=False,
+    points=None,
+    with_images=True,
+):
     """A COLMAP scene under root: sparse/0 (binary or text), images/ and images_{f} for f in factors.
 
     Returns (reconstruction, poses, params).
@@ -97,7 +113,9 @@ def write_colmap_scene(root, *, n_images=10, width=64, height=48, model="PINHOLE
     return rec, poses, params
 
 
-def write_transforms_scene(root, *, n_images=10, width=40, height=30, per_frame=False, angle=False, extra=None, ply=None):
+def write_transforms_scene(
+    root, *, n_images=10, width=40, height=30, per_frame=False, angle=False, extra=None, ply=None
+):
     """A transforms.json scene (OpenGL camera-to-world) under root. Returns (meta, w2c poses)."""
     os.makedirs(os.path.join(root, "images"), exist_ok=True)
     poses = orbit_poses(n_images, radius=3.0)
@@ -112,10 +130,29 @@ def write_transforms_scene(root, *, n_images=10, width=40, height=30, per_frame=
         Image.fromarray(pattern_image(width, height, i)).save(os.path.join(root, "images", f"frame_{i:03d}.png"))
     meta = {"frames": frames}
     if not per_frame:
-        meta.update({"camera_angle_x": 1.2} if angle else {"fl_x": 45.0, "fl_y": 46.0, "cx": 20.5, "cy": 14.0, "w": width, "h": height})
+        meta.update(
+            {"camera_angle_x": 1.2}
+            if angle
+            else {"fl_x": 45.0, "fl_y": 46.0, "cx": 20.5, "cy": 14.0, "w": width, "h": height}
+        )
     if ply is not None:
         meta["ply_file_path"] = ply
     meta.update(extra or {})
     with open(os.path.join(root, "transforms.json"), "w") as f:
         json.dump(meta, f)
     return meta, poses
+
+
+def project(view, X):
+    """Pixel of world point X through the loaded view (our convention)."""
+    cam = view.viewmat[:3, :3].double() @ torch.as_tensor(X, dtype=torch.float64) + view.viewmat[:3, 3].double()
+    K = view.K.double()
+    return np.array([(K[0, 0] * cam[0] / cam[2] + K[0, 2]).item(), (K[1, 1] * cam[1] / cam[2] + K[1, 2]).item()])
+
+
+def line_residual(mask: np.ndarray) -> float:
+    """RMS distance (px) of the mask's pixels from their best-fit straight line."""
+    ys, xs = np.nonzero(mask)
+    pts = np.stack([xs, ys], 1).astype(np.float64)
+    pts -= pts.mean(0)
+    return float(np.sqrt(np.linalg.svd(pts, compute_uv=False)[-1] ** 2 / len(pts)))

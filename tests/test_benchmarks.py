@@ -13,7 +13,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 import run as suite  # noqa: E402
 
-WORKLOAD = '''
+WORKLOAD = """
 import math, torch
 
 def make_scene(n, device="cpu"):
@@ -26,7 +26,7 @@ def make_scene(n, device="cpu"):
         "opacities": torch.rand(n, generator=g).to(device), "sh": (torch.randn(n, 16, 3, generator=g) * 0.3).to(device),
         "viewmat": torch.eye(4).to(device), "K": K.to(device), "width": 48, "height": 36, "sh_degree": 3,
     }
-'''
+"""
 
 
 @pytest.mark.parametrize(
@@ -60,21 +60,55 @@ def test_suite_runs_and_writes_one_json(tmp_path, capsys):
     workload.write_text(WORKLOAD)
     scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
     run_dir = tmp_path / "run"
-    config = TrainConfig(data=DataConfig(data=scene), out=str(run_dir), iters=10, device="cpu",
-                         eval_every=0, checkpoint_every=0, progress=False, save_renders=False)  # fmt: skip
+    config = TrainConfig(
+        data=DataConfig(data=scene),
+        out=str(run_dir),
+        iters=10,
+        device="cpu",
+        eval_every=0,
+        checkpoint_every=0,
+        progress=False,
+        save_renders=False,
+    )
     Trainer(config, {"densify_from": 10**6}).run()
     out = tmp_path / "suite.json"
-    suite.main([
-        "--device", "cpu", "--sections", "raster", "knn", "complexity", "training", "--sizes", "300",
-        "--knn-sizes", "2000", "--iters", "2", "--warmup", "1", "--workload", str(workload),
-        "--training-run", str(run_dir), "--peer-training", os.path.join(ROOT, "benchmarks", "peers", "gsplat_bonsai.json"),
-        "--out", str(out),
-    ])  # fmt: skip
+    suite.main(
+        [
+            "--device",
+            "cpu",
+            "--sections",
+            "raster",
+            "knn",
+            "complexity",
+            "training",
+            "--sizes",
+            "300",
+            "--knn-sizes",
+            "2000",
+            "--iters",
+            "2",
+            "--warmup",
+            "1",
+            "--workload",
+            str(workload),
+            "--training-run",
+            str(run_dir),
+            "--peer-training",
+            os.path.join(ROOT, "benchmarks", "peers", "gsplat_bonsai.json"),
+            "--out",
+            str(out),
+        ]
+    )
     report = json.loads(out.read_text())
     sections = [row["section"] for row in report["rows"]]
     assert {"raster", "knn", "complexity", "training"} <= set(sections)
     raster = next(r for r in report["rows"] if r["section"] == "raster")
-    assert raster["n"] == 300 and raster["forward_ms"] > 0 and raster["forward_backward_ms"] > 0 and raster["intersections"] > 0
+    assert (
+        raster["n"] == 300
+        and raster["forward_ms"] > 0
+        and raster["forward_backward_ms"] > 0
+        and raster["intersections"] > 0
+    )
     training = [r for r in report["rows"] if r["section"] == "training"]
     with open(os.path.join(ROOT, "benchmarks", "peers", "gsplat_bonsai.json")) as f:
         quoted = json.load(f)

@@ -6,12 +6,11 @@ import os
 
 import pytest
 import torch
-from test_strategy import context, hand_model
-from test_train import DEFAULT_DEVICE, tiny_config, tiny_scene  # noqa: F401  (fixture)
+from helpers import context, hand_model, tiny_config
 
 from cdcgs.cli import main as cli_main
-from cdcgs.train.cdc import CDC, PRESETS, caat_threshold, draw, pearson, quantile_score, zscore
-from cdcgs.train.strategy import make_strategy
+from cdcgs.train.cdc import CDC, caat_threshold, draw, pearson, quantile_score, zscore
+from cdcgs.train.presets import PRESETS
 from cdcgs.train.trainer import Trainer
 
 
@@ -70,21 +69,39 @@ def test_draw_probabilities_follow_weights():
 
 
 def test_presets_cover_the_variants_table():
-    assert set(PRESETS) == {"3dgs", "cdc", "cdc-hq", "caat-only", "cdc-only", "cdc-prune-only", "cdc-reverse", "cdc-compact"}
-    cdc = make_strategy("cdc")
-    assert isinstance(cdc, CDC) and cdc.rho_densify == 0.01 and cdc.rho_prune == 0.01 and cdc.caat and cdc.periodic_prune
-    assert make_strategy("cdc-hq").rho_densify == 0.02
-    assert not make_strategy("cdc-only").caat
-    po = make_strategy("cdc-prune-only")
+    assert set(PRESETS) == {
+        "3dgs",
+        "absgs",
+        "cdc",
+        "cdc-hq",
+        "caat-only",
+        "cdc-only",
+        "cdc-prune-only",
+        "cdc-reverse",
+        "cdc-compact",
+    }
+    cdc = CDC.from_preset("cdc")
+    assert (
+        isinstance(cdc, CDC) and cdc.rho_densify == 0.01 and cdc.rho_prune == 0.01 and cdc.caat and cdc.periodic_prune
+    )
+    assert CDC.from_preset("cdc-hq").rho_densify == 0.02
+    assert not CDC.from_preset("cdc-only").caat
+    po = CDC.from_preset("cdc-prune-only")
     assert po.cdc_prune and not po.cdc_densify and not po.caat and po.periodic_prune
-    assert make_strategy("cdc-reverse").reverse
-    compact = make_strategy("cdc-compact")
+    assert CDC.from_preset("cdc-reverse").reverse
+    compact = CDC.from_preset("cdc-compact")
     assert compact.centre == "quantile" and compact.rho_prune == 0.5
-    baseline = make_strategy("3dgs")
-    assert not (baseline.cdc_densify or baseline.cdc_prune or baseline.caat or baseline.periodic_prune or baseline.needs_complexity)
+    baseline = CDC.from_preset("3dgs")
+    assert not (
+        baseline.cdc_densify
+        or baseline.cdc_prune
+        or baseline.caat
+        or baseline.periodic_prune
+        or baseline.needs_complexity
+    )
     assert baseline.prune_screen_size == 0.0  # the 3DGS code's screen-size rule never fires
     with pytest.raises(ValueError, match="complexity_schedule must be one of full, online"):
-        make_strategy("cdc", {"complexity_schedule": "sometimes"})
+        CDC.from_preset("cdc", {"complexity_schedule": "sometimes"})
 
 
 def test_periodic_prune_replaces_per_step_pruning():
@@ -102,9 +119,15 @@ def test_periodic_prune_replaces_per_step_pruning():
 
 
 @pytest.mark.parametrize("schedule", ["full", "online"])
-def test_cdc_trains_and_logs(tiny_scene, tmp_path, schedule):  # noqa: F811
-    config = tiny_config(tiny_scene, tmp_path, strategy="cdc", iters=60)
-    options = {"densify_from": 10, "densify_until": 50, "densify_every": 10, "complexity_schedule": schedule, "periodic_prune_every": 30, "save_maps": 2}
+def test_cdc_trains_and_logs(tiny_scene, tmp_path, schedule):
+    config = tiny_config(tiny_scene, tmp_path, strategy="cdc", iters=60, save_maps=2)
+    options = {
+        "densify_from": 10,
+        "densify_until": 50,
+        "densify_every": 10,
+        "complexity_schedule": schedule,
+        "periodic_prune_every": 30,
+    }
     trainer = Trainer(config, options)
     result = trainer.run()
     steps = [e for e in trainer.history["strategy"] if "correlation" in e]
@@ -122,9 +145,12 @@ def test_cdc_trains_and_logs(tiny_scene, tmp_path, schedule):  # noqa: F811
         assert e["cdc_prune"] == min(math.floor(0.01 * e["gaussians_before"]), e["prune_candidates"])
 
 
-def test_compare_plots_runs(tiny_scene, tmp_path, capsys):  # noqa: F811
+def test_compare_plots_runs(tiny_scene, tmp_path, capsys):
     for name, opts in (("cdc", {}), ("3dgs", {"log_correlation": True})):
-        Trainer(tiny_config(tiny_scene, tmp_path / name, strategy=name, iters=30), {"densify_from": 10, "densify_until": 25, "densify_every": 10, **opts}).run()
+        Trainer(
+            tiny_config(tiny_scene, tmp_path / name, strategy=name, iters=30),
+            {"densify_from": 10, "densify_until": 25, "densify_every": 10, **opts},
+        ).run()
     assert cli_main(["compare", str(tmp_path / "cdc"), str(tmp_path / "3dgs"), "--out", str(tmp_path / "fig.png")]) == 0
     assert (tmp_path / "fig.png").stat().st_size > 1000
     assert cli_main(["compare", str(tmp_path / "nope")]) == 2

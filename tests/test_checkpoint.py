@@ -1,13 +1,16 @@
-"""Checkpoints: atomic writes, clear errors, and a resumed run that continues the same run."""
+"""Checkpoints: atomic writes, clear errors, and checkpoints of earlier versions."""
 
-import random
+import json
 
-import numpy as np
 import pytest
 import torch
+from helpers import DEFAULT_DEVICE, tiny_config
 
+from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError
-from cdcgs.io import capture_rng_state, load_checkpoint, restore_rng_state, save_checkpoint
+from cdcgs.io import load_checkpoint, save_checkpoint
+from cdcgs.train.outputs import load_run
+from cdcgs.train.trainer import CHECKPOINT_FORMAT, Trainer
 
 
 def test_round_trip(tmp_path):
@@ -56,34 +59,60 @@ def test_truncated_checkpoint(tmp_path):
         load_checkpoint(path)
 
 
-def _noisy_training(steps, state=None):
-    """A toy run that draws from every generator: resuming must reproduce it exactly."""
-    if state is None:
-        torch.manual_seed(0)
-        np.random.seed(0)
-        random.seed(0)
-        param = torch.nn.Parameter(torch.zeros(4))
-        optimizer = torch.optim.Adam([param], lr=0.1)
-        start = 0
-    else:
-        param = torch.nn.Parameter(state["param"])
-        optimizer = torch.optim.Adam([param], lr=0.1)
-        optimizer.load_state_dict(state["optimizer"])
-        restore_rng_state(state["rng"])
-        start = state["step"]
-    for _ in range(start, steps):
-        target = torch.randn(4) + np.random.rand() + random.random()
-        loss = ((param - target) ** 2).sum()
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-    return param, optimizer
+def as_written_before_the_restructure(out) -> None:
+    """Rewrite a run folder as cdcgs wrote it up to format 1 (checked against a real run of that
+    version): global generator states in the checkpoint, the strategy named `adc`, save_maps among
+    the strategy options, the viewer's options in the configuration."""
+    path = out / "checkpoint.pt"
+    state = torch.load(path, weights_only=False)
+    del state["format"]
+    state["rng"] = {"python": None, "numpy": None, "torch": torch.get_rng_state()}
+    state["strategy_options"] = {**state["strategy_options"], "save_maps": 4}
+    state["config"].update(strategy="adc", view=False, view_port=8080, view_host="127.0.0.1")
+    torch.save(state, path)
+    config = json.load(open(out / "config.json"))
+    config["train"].update(strategy="adc", view=False, view_port=8080, view_host="127.0.0.1")
+    json.dump(config, open(out / "config.json", "w"))
 
 
-def test_resume_continues_the_same_run(tmp_path):
-    straight, _ = _noisy_training(20)
-    param, optimizer = _noisy_training(10)
-    save_checkpoint(tmp_path / "ckpt.pt", {"param": param.detach().clone(), "optimizer": optimizer.state_dict(), "rng": capture_rng_state(), "step": 10})
-    random.random(), np.random.rand(), torch.randn(3)  # disturb the generators in between
-    resumed, _ = _noisy_training(20, load_checkpoint(tmp_path / "ckpt.pt"))
-    assert torch.equal(resumed, straight)
+def test_a_run_of_the_earlier_format_loads_and_resumes(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    Trainer(tiny_config(tiny_scene, out, iters=20), {"densify_from": 5, "densify_until": 15, "densify_every": 5}).run()
+    as_written_before_the_restructure(out)
+    run = load_run(out)
+    assert run.config.strategy == "3dgs" and run.model.num > 0
+    assert cli_main(["eval", str(out), "--device", DEFAULT_DEVICE]) == 0
+    trainer = Trainer(tiny_config(tiny_scene, out, iters=25, resume=True))
+    result = trainer.run()
+    assert result["iterations"] == 25 and trainer.config.strategy == "3dgs"
+    assert load_checkpoint(out / "checkpoint.pt")["format"] == CHECKPOINT_FORMAT
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (lambda state: state.update(format=CHECKPOINT_FORMAT + 1), "written by a newer cdcgs"),
+        (lambda state: state.pop("optimizer"), "not a cdcgs training checkpoint (no optimizer)"),
+    ],
+)
+def test_checkpoints_this_version_cannot_resume_are_refused(tiny_scene, tmp_path, capsys, change, message):
+    out = tmp_path / "run"
+    Trainer(tiny_config(tiny_scene, out, iters=5)).run()
+    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    change(state)
+    torch.save(state, out / "checkpoint.pt")
+    argv = [
+        "train",
+        "--data",
+        str(tiny_scene),
+        "--out",
+        str(out),
+        "--iters",
+        "10",
+        "--resume",
+        "--no-progress",
+        "--device",
+        DEFAULT_DEVICE,
+    ]
+    assert cli_main(argv) == 2
+    assert message in capsys.readouterr().err

@@ -62,7 +62,9 @@ def dense_complexity(weights: torch.Tensor, hf: torch.Tensor):
 @pytest.mark.parametrize("seed", [21, 22])
 def test_gaussian_complexity_matches_dense_reference(device, seed):
     scene = make_scene(300, 61, 37, sh_degree=0, seed=seed)
-    _, _, info = cdcgs.rasterize(*[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=61, height=37)
+    _, _, info = cdcgs.rasterize(
+        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=61, height=37
+    )
     g = torch.Generator().manual_seed(seed)
     hf_map = (torch.rand(37, 61, generator=g) * 255).to(torch.uint8)
     max_out, sum_out, count = gaussian_complexity(info, hf_map.to(device))
@@ -77,7 +79,9 @@ def test_gaussian_complexity_matches_dense_reference(device, seed):
 
 def test_bad_map_is_refused(device):
     scene = make_scene(40, 32, 24, sh_degree=0, seed=3, hard_cases=False)
-    _, _, info = cdcgs.rasterize(*[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=32, height=24)
+    _, _, info = cdcgs.rasterize(
+        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=32, height=24
+    )
     with pytest.raises(ValueError, match="hf_map must be a uint8"):
         gaussian_complexity(info, torch.zeros(24, 31, dtype=torch.uint8, device=device))
     with pytest.raises(ValueError, match="hf_map must be a uint8"):

@@ -77,8 +77,12 @@ def test_download_resumes_and_extracts_only_the_scene(tmp_path, archive):
     assert (tmp_path / ".download" / "360_v2.zip").read_bytes() == archive
     assert sorted(os.listdir(tmp_path)) == [".download", "garden"]
     with zipfile.ZipFile(io.BytesIO(archive)) as zf:
-        assert (tmp_path / "garden" / "images_4" / "IMG_0001.JPG").read_bytes() == zf.read("garden/images_4/IMG_0001.JPG")
-        assert (tmp_path / "garden" / "sparse" / "0" / "cameras.bin").read_bytes() == zf.read("garden/sparse/0/cameras.bin")
+        assert (tmp_path / "garden" / "images_4" / "IMG_0001.JPG").read_bytes() == zf.read(
+            "garden/images_4/IMG_0001.JPG"
+        )
+        assert (tmp_path / "garden" / "sparse" / "0" / "cameras.bin").read_bytes() == zf.read(
+            "garden/sparse/0/cameras.bin"
+        )
 
 
 def test_resume_across_runs_and_server_without_range(tmp_path, archive):
@@ -96,10 +100,32 @@ def test_resume_across_runs_and_server_without_range(tmp_path, archive):
 def test_cli_download_and_errors(tmp_path, archive, capsys):
     server = RangeServer(archive, drop_first=0)
     try:
-        assert cli_main(["download", "mipnerf360", "--scene", "bonsai", "--dest", str(tmp_path), "--url", server.url, "--delete-archive"]) == 0
+        assert (
+            cli_main(
+                [
+                    "download",
+                    "mipnerf360",
+                    "--scene",
+                    "bonsai",
+                    "--dest",
+                    str(tmp_path),
+                    "--url",
+                    server.url,
+                    "--delete-archive",
+                ]
+            )
+            == 0
+        )
         assert "bonsai is in" in capsys.readouterr().out
-        assert not (tmp_path / ".download" / "360_v2.zip").exists() and (tmp_path / "bonsai" / "poses_bounds.npy").exists()
-        assert cli_main(["download", "mipnerf360", "--scene", "kitchen", "--dest", str(tmp_path / "k"), "--url", server.url]) == 2
+        assert (
+            not (tmp_path / ".download" / "360_v2.zip").exists() and (tmp_path / "bonsai" / "poses_bounds.npy").exists()
+        )
+        assert (
+            cli_main(
+                ["download", "mipnerf360", "--scene", "kitchen", "--dest", str(tmp_path / "k"), "--url", server.url]
+            )
+            == 2
+        )
         assert "the archive holds no scene 'kitchen'" in capsys.readouterr().err
     finally:
         server.close()

@@ -35,7 +35,9 @@ def smooth_scene(dtype=torch.float32):
 def loss_fn(render, cot_image, cot_alpha, cot_depth):
     def loss(*tensors):
         image, alpha, depth = render(*tensors)
-        return (image.double() * cot_image).sum() + (alpha.double() * cot_alpha).sum() + (depth.double() * cot_depth).sum()
+        return (
+            (image.double() * cot_image).sum() + (alpha.double() * cot_alpha).sum() + (depth.double() * cot_depth).sum()
+        )
 
     return loss
 
@@ -43,9 +45,19 @@ def loss_fn(render, cot_image, cot_alpha, cot_depth):
 def warp_render(device, antialiased):
     def render(means, quats, scales, opacities, sh, background):
         image, alpha, info = cdcgs.rasterize(
-            means, quats, scales, opacities, sh, viewmat=VIEW, K=K, width=WIDTH, height=HEIGHT,
-            background=background, antialiased=antialiased, render_depth=True,
-        )  # fmt: skip
+            means,
+            quats,
+            scales,
+            opacities,
+            sh,
+            viewmat=VIEW,
+            K=K,
+            width=WIDTH,
+            height=HEIGHT,
+            background=background,
+            antialiased=antialiased,
+            render_depth=True,
+        )
         return image, alpha, info.depth
 
     return render
@@ -55,7 +67,11 @@ def warp_render(device, antialiased):
 def test_warp_gradients_match_central_differences(device, antialiased):
     tensors = [t.to(device) for t in smooth_scene()]
     g = torch.Generator().manual_seed(4)
-    cots = [torch.randn(HEIGHT, WIDTH, 3, generator=g), torch.randn(HEIGHT, WIDTH, generator=g), torch.randn(HEIGHT, WIDTH, generator=g) * 0.1]
+    cots = [
+        torch.randn(HEIGHT, WIDTH, 3, generator=g),
+        torch.randn(HEIGHT, WIDTH, generator=g),
+        torch.randn(HEIGHT, WIDTH, generator=g) * 0.1,
+    ]
     loss = loss_fn(warp_render(device, antialiased), *[c.to(device, torch.float64) for c in cots])
     # Preconditions of a smooth scene: full coverage, no clamp, no early stop.
     with torch.no_grad():
@@ -80,7 +96,9 @@ def test_warp_gradients_match_central_differences(device, antialiased):
         scale = analytic.abs().max().item()
         assert scale > 0
         # float32 renders under a float64 loss: differences carry ~1e-3 relative noise.
-        torch.testing.assert_close(analytic, numeric, atol=5e-3 * scale, rtol=1e-2, msg=lambda m, name=name: f"{name}: {m}")
+        torch.testing.assert_close(
+            analytic, numeric, atol=5e-3 * scale, rtol=1e-2, msg=lambda m, name=name: f"{name}: {m}"
+        )
 
 
 def test_reference_gradients_pass_gradcheck_in_float64():
@@ -88,8 +106,19 @@ def test_reference_gradients_pass_gradcheck_in_float64():
 
     def render(means, quats, scales, opacities, sh, background):
         image, alpha, depth, _ = reference.render(
-            means, quats, scales, opacities, sh, viewmat=VIEW.double(), K=K.double(), width=8, height=6, background=background
+            means,
+            quats,
+            scales,
+            opacities,
+            sh,
+            viewmat=VIEW.double(),
+            K=K.double(),
+            width=8,
+            height=6,
+            background=background,
         )
         return image, alpha, depth
 
-    assert torch.autograd.gradcheck(render, (means, quats, scales, opacities, sh, background), eps=1e-6, atol=1e-6, rtol=1e-4)
+    assert torch.autograd.gradcheck(
+        render, (means, quats, scales, opacities, sh, background), eps=1e-6, atol=1e-6, rtol=1e-4
+    )

@@ -11,10 +11,12 @@ import types
 
 import pytest
 import torch
+from conftest import test_devices
 
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.io import load_scene, scene_extent
-from cdcgs.train.model import GaussianModel, LearningRates
+from cdcgs.train.config import LearningRates
+from cdcgs.train.model import GaussianModel
 from cdcgs.train.trainer import Trainer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -81,10 +83,10 @@ def test_means_learning_rate_decays_to_a_hundredth():
 def test_rates_are_gsplats_and_equal_ours():
     ours = LearningRates()
     gsplat = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3, "shN": 2.5e-3 / 20}
-    assert peer.GSPLAT_LRS == gsplat
+    assert gsplat == peer.GSPLAT_LRS
     ours_in_order = [ours.means_init, ours.log_scales, ours.quats, ours.opacity_logits, ours.sh_dc, ours.sh_rest]
     assert ours_in_order == list(gsplat.values())
-    assert peer.MEANS_LR_END == pytest.approx(ours.means_final / ours.means_init)
+    assert pytest.approx(ours.means_final / ours.means_init) == peer.MEANS_LR_END
 
 
 def test_sh_degree_schedule():
@@ -108,8 +110,25 @@ CALLS: list = []  # the strategy hooks' calls, in order
 START: dict = {}  # the parameters and rates check_sanity saw
 
 
-def fake_rasterization(*, means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
-                       sh_degree, packed, absgrad, rasterize_mode, backgrounds):  # fmt: skip
+def fake_rasterization(
+    *,
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    near_plane,
+    far_plane,
+    sh_degree,
+    packed,
+    absgrad,
+    rasterize_mode,
+    backgrounds,
+):
     assert packed is False and absgrad is False and rasterize_mode == "classic"
     assert backgrounds is None or (backgrounds.shape == (1, 3) and not backgrounds.any())  # black: none in training
     assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3) and colors.shape[1:] == (16, 3) and 0 <= sh_degree <= 3
@@ -158,6 +177,7 @@ class RecordingStrategy:
         CALLS.append(("post", step, optimizers["means"].param_groups[0]["lr"]))
 
 
+@pytest.mark.skipif("cpu" not in test_devices(), reason="CDCGS_TEST_DEVICES leaves out the CPU (no Warp CPU compiler)")
 def test_training_loop_end_to_end_on_the_cpu_with_a_stand_in(tmp_path, monkeypatch):
     scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
     out = tmp_path / "out"

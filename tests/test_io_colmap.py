@@ -7,19 +7,12 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from scenes import distorted_line_image, write_colmap_scene
+from scenes import distorted_line_image, line_residual, project, write_colmap_scene
 
 from cdcgs.errors import InputError
 from cdcgs.io import load_scene
 
 BONSAI = os.environ.get("CDCGS_BONSAI", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai"))
-
-
-def project(view, X):
-    """Pixel of world point X through the loaded view (our convention)."""
-    cam = view.viewmat[:3, :3].double() @ torch.as_tensor(X, dtype=torch.float64) + view.viewmat[:3, 3].double()
-    K = view.K.double()
-    return np.array([(K[0, 0] * cam[0] / cam[2] + K[0, 2]).item(), (K[1, 1] * cam[1] / cam[2] + K[1, 2]).item()])
 
 
 @pytest.mark.parametrize("model", ["PINHOLE", "SIMPLE_PINHOLE"])
@@ -70,7 +63,11 @@ def test_factor_folder_scales_intrinsics(tmp_path):
         assert (b.width, b.height) == (32, 24) and b.image.shape == (24, 32, 3)
         X = np.array([0.2, -0.1, 0.1])
         np.testing.assert_allclose(project(b, X), project(a, X) / 2, atol=1e-4)
-    assert load_scene(tmp_path, factor=2, load_images_now=False).views[0].image_path.endswith(os.path.join("images_2", "img_000.png"))
+    assert (
+        load_scene(tmp_path, factor=2, load_images_now=False)
+        .views[0]
+        .image_path.endswith(os.path.join("images_2", "img_000.png"))
+    )
 
 
 def test_missing_factor_folder_resizes_and_says_so_once(tmp_path, caplog):
@@ -83,19 +80,16 @@ def test_missing_factor_folder_resizes_and_says_so_once(tmp_path, caplog):
     assert (view.width, view.height) == (16, 12) and view.image.shape == (12, 16, 3)
     torch.testing.assert_close(view.K[0, 0], torch.tensor(50.0 * 16 / 64))
     # The content is the full image, resized.
-    full = np.asarray(Image.open(os.path.join(tmp_path, "images", view.name)).convert("RGB").resize((16, 12), Image.LANCZOS))
+    full = np.asarray(
+        Image.open(os.path.join(tmp_path, "images", view.name)).convert("RGB").resize((16, 12), Image.LANCZOS)
+    )
     np.testing.assert_array_equal(view.image.numpy(), full)
 
 
-def line_residual(mask: np.ndarray) -> float:
-    """RMS distance (px) of the mask's pixels from their best-fit straight line."""
-    ys, xs = np.nonzero(mask)
-    pts = np.stack([xs, ys], 1).astype(np.float64)
-    pts -= pts.mean(0)
-    return float(np.sqrt(np.linalg.svd(pts, compute_uv=False)[-1] ** 2 / len(pts)))
-
-
-@pytest.mark.parametrize("model,params", [("OPENCV", [90.0, 92.0, 80.0, 60.0, -0.25, 0.08, 0.002, -0.001]), ("SIMPLE_RADIAL", [90.0, 80.0, 60.0, -0.15])])
+@pytest.mark.parametrize(
+    "model,params",
+    [("OPENCV", [90.0, 92.0, 80.0, 60.0, -0.25, 0.08, 0.002, -0.001]), ("SIMPLE_RADIAL", [90.0, 80.0, 60.0, -0.15])],
+)
 def test_distorted_cameras_are_undistorted_and_cached(tmp_path, model, params):
     width, height = 160, 120
     write_colmap_scene(tmp_path, n_images=3, width=width, height=height, model=model, params=params)
@@ -208,11 +202,15 @@ def test_read_only_scene_caches_in_user_folder(tmp_path, monkeypatch):
     import cdcgs.io.colmap as colmap
 
     scene_dir = tmp_path / "scene"
-    write_colmap_scene(scene_dir, n_images=2, width=80, height=60, model="SIMPLE_RADIAL", params=[60.0, 40.0, 30.0, -0.2])
+    write_colmap_scene(
+        scene_dir, n_images=2, width=80, height=60, model="SIMPLE_RADIAL", params=[60.0, 40.0, 30.0, -0.2]
+    )
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     # Root can write anywhere, so read-only is simulated: nothing under the scene is writable.
     writable = colmap._writable
-    monkeypatch.setattr(colmap, "_writable", lambda folder: not str(folder).startswith(str(scene_dir)) and writable(folder))
+    monkeypatch.setattr(
+        colmap, "_writable", lambda folder: not str(folder).startswith(str(scene_dir)) and writable(folder)
+    )
     scene = load_scene(scene_dir, progress=False)
     assert scene.views[0].image_path.startswith(str(tmp_path / "cache" / "cdcgs"))
     assert not (scene_dir / ".cdcgs_cache").exists()

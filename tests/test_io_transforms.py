@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
-from scenes import distorted_line_image, write_transforms_scene
-from test_io_colmap import line_residual, project
+from scenes import distorted_line_image, line_residual, project, write_transforms_scene
 
 from cdcgs.errors import InputError
 from cdcgs.io import load_scene
@@ -44,13 +43,21 @@ def test_camera_angle_x_and_factor(tmp_path):
     f = 0.5 * 40 / np.tan(0.6)
     view = scene.views[0]
     assert (view.width, view.height) == (20, 15) and view.image.shape == (15, 20, 3)
-    torch.testing.assert_close(view.K, torch.tensor([[f / 2, 0, 10.0], [0, f / 2, 7.5], [0, 0, 1]], dtype=torch.float32))
+    torch.testing.assert_close(
+        view.K, torch.tensor([[f / 2, 0, 10.0], [0, f / 2, 7.5], [0, 0, 1]], dtype=torch.float32)
+    )
 
 
 def test_distortion_is_undistorted(tmp_path):
     width, height, f, cx, cy = 160, 120, 90.0, 80.0, 60.0
     dist = (-0.25, 0.08, 0.002, -0.001)
-    write_transforms_scene(tmp_path, n_images=2, width=width, height=height, extra={"k1": dist[0], "k2": dist[1], "p1": dist[2], "p2": dist[3]})
+    write_transforms_scene(
+        tmp_path,
+        n_images=2,
+        width=width,
+        height=height,
+        extra={"k1": dist[0], "k2": dist[1], "p1": dist[2], "p2": dist[3]},
+    )
     meta = json.load(open(tmp_path / "transforms.json"))
     meta.update(fl_x=f, fl_y=f, cx=cx, cy=cy)
     json.dump(meta, open(tmp_path / "transforms.json", "w"))
@@ -105,12 +112,30 @@ def test_missing_frames_refused_or_skipped(tmp_path, caplog):
         ('{"frames": []}', "non-empty 'frames' list"),
         ('{"frames": [{"transform_matrix": []}]}', "needs a 'file_path'"),
         ('{"frames": [{"file_path": "images/frame_000"}], "fl_x": 40}', "needs a 'transform_matrix'"),
-        ('{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1, 0], [0, 1]]}], "fl_x": 40}', "finite 4x4"),
-        ('{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[2,0,0,0],[0,2,0,0],[0,0,2,0],[0,0,0,1]]}], "fl_x": 40}', "not orthonormal"),
-        ('{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "no focal length"),
-        ('{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": "big"}', "'fl_x' must be a finite number"),
-        ('{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": 40, "w": 99}', "image is 40x30 but transforms.json says 99x30"),
-        ('{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": 40, "ply_file_path": "none.ply"}', "cannot read the initial point cloud"),
+        (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1, 0], [0, 1]]}], "fl_x": 40}',
+            "finite 4x4",
+        ),
+        (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[2,0,0,0],[0,2,0,0],[0,0,2,0],[0,0,0,1]]}], "fl_x": 40}',
+            "not orthonormal",
+        ),
+        (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}',
+            "no focal length",
+        ),
+        (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": "big"}',
+            "'fl_x' must be a finite number",
+        ),
+        (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": 40, "w": 99}',
+            "image is 40x30 but transforms.json says 99x30",
+        ),
+        (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": 40, "ply_file_path": "none.ply"}',
+            "cannot read the initial point cloud",
+        ),
     ],
 )
 def test_malformed_transforms(tmp_path, content, match):

@@ -82,7 +82,13 @@ def planar(rng, n):
     return np.concatenate([grid, rest]).astype(np.float32)
 
 
-DISTRIBUTIONS = {"uniform": uniform, "clustered": clustered, "duplicated": duplicated, "collinear": collinear, "planar": planar}
+DISTRIBUTIONS = {
+    "uniform": uniform,
+    "clustered": clustered,
+    "duplicated": duplicated,
+    "collinear": collinear,
+    "planar": planar,
+}
 
 
 @pytest.mark.parametrize("name", DISTRIBUTIONS)
@@ -111,7 +117,7 @@ def test_tiny_inputs(device):
     np.testing.assert_allclose(sqdist.cpu().numpy(), [[1, 9], [1, 10], [9, 10]])
 
 
-@pytest.mark.skipif(not os.path.isdir(BONSAI), reason="../shared/data/bonsai is absent")
+@pytest.mark.skipif(not os.path.isdir(BONSAI), reason="the bonsai scene is absent (set CDCGS_BONSAI)")
 def test_knn_on_bonsai_points(device):
     import pycolmap
 
@@ -132,8 +138,16 @@ def test_knn_on_bonsai_points(device):
         (torch.rand(40, 3), 17, "k must be an int in 1..16"),
         (torch.rand(10, 3).double(), 3, "points must be float32"),
         (torch.rand(10, 2), 3, "points must have shape \\[N, 3\\]"),
-        (torch.tensor([[0.0, 0.0, 0.0], [1.0, float("nan"), 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), 2, "1 point\\(s\\) with NaN or infinite"),
-        (torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, float("inf")], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), 2, "NaN or infinite"),
+        (
+            torch.tensor([[0.0, 0.0, 0.0], [1.0, float("nan"), 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]]),
+            2,
+            "1 point\\(s\\) with NaN or infinite",
+        ),
+        (
+            torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, float("inf")], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]]),
+            2,
+            "NaN or infinite",
+        ),
     ],
 )
 def test_bad_input(device, points, k, match):
@@ -141,12 +155,33 @@ def test_bad_input(device, points, k, match):
         knn(points.to(device), k)
 
 
+def test_knn_search_on_warp_arrays(device):
+    """``cdcgs.kernels.knn_search``, the plain-Warp entry, fills caller-given outputs with what the
+    torch face returns."""
+    import warp as wp
+
+    from cdcgs.kernels import knn_search
+
+    points = clustered(np.random.default_rng(3), 1000)
+    sqdist = wp.empty((1000, 4), dtype=float, device=device)
+    index = wp.empty((1000, 4), dtype=wp.int32, device=device)
+    returned = knn_search(wp.array(points, dtype=wp.vec3, device=device), 4, sqdist_out=sqdist, index_out=index)
+    assert returned[0] is sqdist and returned[1] is index
+    assert_knn_equal(points, 4, sqdist.numpy(), index.numpy())
+    _, torch_index = knn(torch.from_numpy(points).to(device), 4)
+    np.testing.assert_array_equal(index.numpy(), torch_index.cpu().numpy())
+    with pytest.raises(ValueError, match="1-D Warp array of vec3"):
+        knn_search(wp.array(points[:, 0], dtype=float, device=device), 4)
+
+
 def test_initial_scales_and_density(device):
     rng = np.random.default_rng(5)
     points = clustered(rng, 2000)
     ref_d, _ = brute_force(points, 3)
     t = torch.from_numpy(points).to(device)
-    np.testing.assert_allclose(initial_scales(t, "3dgs").cpu().numpy(), np.sqrt(np.maximum(ref_d.mean(1), 1e-7)), rtol=1e-5)
+    np.testing.assert_allclose(
+        initial_scales(t, "3dgs").cpu().numpy(), np.sqrt(np.maximum(ref_d.mean(1), 1e-7)), rtol=1e-5
+    )
     geometric = np.cbrt(ref_d.prod(1))
     np.testing.assert_allclose(initial_scales(t, "cdc").cpu().numpy(), np.maximum(np.sqrt(geometric), 1e-7), rtol=1e-5)
     np.testing.assert_allclose(density(t).cpu().numpy(), 1.0 / (geometric + 1e-6), rtol=1e-5)

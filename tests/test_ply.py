@@ -61,7 +61,16 @@ def test_reads_a_file_written_by_plyfile(tmp_path, normals):
     from plyfile import PlyData, PlyElement
 
     names = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + ["f_dc_0", "f_dc_1", "f_dc_2"]
-    names += [f"f_rest_{i}" for i in range(9)] + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    names += [f"f_rest_{i}" for i in range(9)] + [
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     if not normals:
         names = names[::-1]
     data = np.zeros(4, dtype=[(n, "f4") for n in names])
@@ -82,7 +91,7 @@ def test_non_finite_values_are_refused(tmp_path):
     model.log_scales[3, 1] = float("nan")
     model.means[5, 0] = float("inf")
     write_ply(tmp_path / "nan.ply", model)
-    with pytest.raises(InputError, match="2 of .* vertices hold NaN or infinite values \\(the first is vertex 3\\)"):
+    with pytest.raises(InputError, match=r"2 of .* vertices hold NaN or infinite values \(the first is vertex 3\)"):
         read_ply(tmp_path / "nan.ply")
 
 
@@ -94,7 +103,10 @@ def test_non_finite_values_are_refused(tmp_path):
         (lambda b: b.replace(b"property float opacity\n", b""), "missing \\['opacity'\\]"),
         (lambda b: b.replace(b"property float scale_0\n", b"property float scale_9\n"), "missing \\['scale_0'\\]"),
         (lambda b: b.replace(b"f_rest_44", b"f_rest_XX"), "missing \\['f_rest_44'\\]"),
-        (lambda b: b.replace(b"property float scale_1\n", b"property float scale_0\n"), "names a vertex property twice|missing"),
+        (
+            lambda b: b.replace(b"property float scale_1\n", b"property float scale_0\n"),
+            "names a vertex property twice|missing",
+        ),
         (lambda b: b.replace(b"property float f_rest_44\n", b""), "44 f_rest fields"),
         (lambda b: b.replace(b"binary_little_endian", b"ascii"), "format 'ascii'"),
         (lambda b: b.replace(b"element vertex 37", b"element vertex 38"), "truncated"),
@@ -158,7 +170,9 @@ def test_fuzzed_files_raise_only_input_error(tmp_path_factory, data):
     else:
         header_end = original.index(b"end_header\n")
         pos = data.draw(st.integers(0, header_end))
-        damaged = original[:pos] + data.draw(st.sampled_from([b"\n", b" ", b"element face 3\n", b"x", b"9"])) + original[pos:]
+        damaged = (
+            original[:pos] + data.draw(st.sampled_from([b"\n", b" ", b"element face 3\n", b"x", b"9"])) + original[pos:]
+        )
     path = tmp_path_factory.mktemp("fuzz") / "f.ply"
     path.write_bytes(damaged)
     try:

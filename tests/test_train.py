@@ -7,43 +7,14 @@ import sys
 
 import pytest
 import torch
-from conftest import test_devices
+from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config
 
 from cdcgs.cli import main as cli_main
-from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.errors import InputError
 from cdcgs.io import load_checkpoint, read_ply
-from cdcgs.train.config import DataConfig, TrainConfig
 from cdcgs.train.trainer import Trainer, TrainingDiverged
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SHORT = {"densify_from": 20, "densify_until": 120, "densify_every": 20, "reset_every": 100_000}
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return make_procedural_scene(tmp_path_factory.mktemp("scene"), views=16, width=48, height=36, points=1500)
-
-
-DEFAULT_DEVICE = test_devices()[0]  # cpu, unless CDCGS_TEST_DEVICES narrows it
-
-
-def interrupt_at(monkeypatch, step: int) -> None:
-    """Make training raise KeyboardInterrupt (Ctrl-C) when it is about to take ``step + 1``."""
-    real_step = Trainer.train_step
-
-    def interrupted(self):
-        if self.step == step:
-            raise KeyboardInterrupt
-        return real_step(self)
-
-    monkeypatch.setattr(Trainer, "train_step", interrupted)
-
-
-def tiny_config(scene, out, device=DEFAULT_DEVICE, **overrides):
-    values = dict(data=DataConfig(data=scene), out=str(out), iters=40, device=device, eval_every=0, checkpoint_every=0, progress=False, sh_every=10)
-    values.update(overrides)
-    return TrainConfig(**values)
 
 
 def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path, device):
@@ -54,7 +25,15 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
     assert result["num_gaussians"] > 1500, "densification must have added Gaussians"
     out = tmp_path / "run"
     names = sorted(os.listdir(out))
-    for expected in ("checkpoint.pt", "config.json", "curves.png", "history.json", "metrics.json", "point_cloud.ply", "test_renders"):
+    for expected in (
+        "checkpoint.pt",
+        "config.json",
+        "curves.png",
+        "history.json",
+        "metrics.json",
+        "point_cloud.ply",
+        "test_renders",
+    ):
         assert expected in names
     metrics = json.load(open(out / "metrics.json"))
     assert metrics["test"]["lpips"] is None and "unavailable" in metrics["test"]["lpips_note"]
@@ -68,12 +47,23 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
 def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):
     Trainer(tiny_config(tiny_scene, tmp_path, iters=5), SHORT).run()
     before = (tmp_path / "checkpoint.pt").read_bytes()
-    with pytest.raises(InputError, match="already holds a cdcgs run .*--resume.*--overwrite"):
+    with pytest.raises(InputError, match=r"already holds a cdcgs run .*--resume.*--overwrite"):
         Trainer(tiny_config(tiny_scene, tmp_path, iters=5), SHORT).run()
     assert (tmp_path / "checkpoint.pt").read_bytes() == before
-    argv = ["train", "--data", str(tiny_scene), "--out", str(tmp_path), "--iters", "5", "--no-progress", "--device", DEFAULT_DEVICE]
+    argv = [
+        "train",
+        "--data",
+        str(tiny_scene),
+        "--out",
+        str(tmp_path),
+        "--iters",
+        "5",
+        "--no-progress",
+        "--device",
+        DEFAULT_DEVICE,
+    ]
     assert cli_main(argv) == 2 and "already holds a cdcgs run" in capsys.readouterr().err
-    assert cli_main(argv + ["--overwrite"]) == 0
+    assert cli_main([*argv, "--overwrite"]) == 0
 
 
 def test_sh_degree_schedule(tiny_scene, tmp_path):
@@ -86,7 +76,9 @@ def test_sh_degree_schedule(tiny_scene, tmp_path):
     assert degrees[8] == 0 and degrees[9] == 1 and degrees[19] == 2 and degrees[24] == 2
 
 
-@pytest.mark.skipif(DEFAULT_DEVICE != "cpu", reason="bitwise repeatable on the CPU only: on CUDA the order of float atomic adds varies")
+@pytest.mark.skipif(
+    DEFAULT_DEVICE != "cpu", reason="bitwise repeatable on the CPU only: on CUDA the order of float atomic adds varies"
+)
 def test_same_seed_same_run_and_resume_continues_it(tiny_scene, tmp_path, monkeypatch):
     straight = Trainer(tiny_config(tiny_scene, tmp_path / "a", iters=50, background="random"), SHORT)
     straight.run()
@@ -117,7 +109,7 @@ def test_nan_loss_stops_with_last_good_checkpoint(tiny_scene, tmp_path, monkeypa
 
     monkeypatch.setattr(trainer_module, "photometric_loss", flaky)
     trainer = Trainer(tiny_config(tiny_scene, tmp_path, device), SHORT)
-    with pytest.raises(TrainingDiverged, match="loss became nan at iteration 12.*iteration 11"):
+    with pytest.raises(TrainingDiverged, match=r"loss became nan at iteration 12.*iteration 11"):
         trainer.run()
     state = load_checkpoint(tmp_path / "checkpoint.pt")
     assert state["step"] == 11
@@ -135,8 +127,28 @@ def test_ctrl_c_writes_checkpoint_and_ply(tiny_scene, tmp_path, monkeypatch):
 
 def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
     out = tmp_path / "cli"
-    code = cli_main(["train", "--data", str(tiny_scene), "--out", str(out), "--iters", "30", "--device", device, "--no-progress",
-                     "--eval-every", "0", "--densify-from", "10", "--densify-every", "10", "--max-gaussians", "2000"])  # fmt: skip
+    code = cli_main(
+        [
+            "train",
+            "--data",
+            str(tiny_scene),
+            "--out",
+            str(out),
+            "--iters",
+            "30",
+            "--device",
+            device,
+            "--no-progress",
+            "--eval-every",
+            "0",
+            "--densify-from",
+            "10",
+            "--densify-every",
+            "10",
+            "--max-gaussians",
+            "2000",
+        ]
+    )
     assert code == 0
     text = capsys.readouterr().out
     assert "test: PSNR" in text and f"outputs in {out}" in text
@@ -153,7 +165,23 @@ def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
         assert cli_main(["render", str(out), "--video", str(tmp_path / "orbit.mp4")]) == 2
         assert "needs the imageio-ffmpeg package" in capsys.readouterr().err
     else:
-        assert cli_main(["render", str(out), "--path", "orbit", "--frames", "6", "--video", str(tmp_path / "orbit.mp4"), "--device", device]) == 0
+        assert (
+            cli_main(
+                [
+                    "render",
+                    str(out),
+                    "--path",
+                    "orbit",
+                    "--frames",
+                    "6",
+                    "--video",
+                    str(tmp_path / "orbit.mp4"),
+                    "--device",
+                    device,
+                ]
+            )
+            == 0
+        )
         assert (tmp_path / "orbit.mp4").stat().st_size > 1000
     assert cli_main(["export", str(out), str(tmp_path / "model.ply")]) == 0
     assert read_ply(tmp_path / "model.ply").means.shape[0] == read_ply(out / "point_cloud.ply").means.shape[0]
@@ -163,21 +191,38 @@ def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
     "argv,message",
     [
         (["train", "--data", "/nonexistent/scene"], "no such scene folder"),
-        (["train", "--data", "{scene}", "--grad-threshold", "1e-4", "--strategy", "nope"], "unknown strategy 'nope'"),
+        (["train", "--data", "{scene}", "--grad-threshold", "1e-4", "--strategy", "nope"], "invalid choice: 'nope'"),
         (["train", "--data", "{scene}", "--device", "tpu"], "device 'tpu'"),
-        (["train", "--data", "{scene}", "--background", "green"], "background must be black, white or random"),
-        (["eval", "/nonexistent/out"], "not a cdcgs output folder"),
+        (["train", "--data", "{scene}", "--background", "green"], "invalid choice: 'green'"),
+        (["eval", "/nonexistent/out"], "no such run folder"),
         (["export", "/nonexistent/out", "x.ply"], "no such output folder"),
     ],
 )
 def test_cli_bad_input(tiny_scene, tmp_path, capsys, argv, message):
-    argv = [a.replace("{scene}", str(tiny_scene)) for a in argv] + (["--out", str(tmp_path / "o"), "--no-progress", "--device", DEFAULT_DEVICE] if argv[0] == "train" and "--device" not in argv else [])
+    argv = [a.replace("{scene}", str(tiny_scene)) for a in argv] + (
+        ["--out", str(tmp_path / "o"), "--no-progress", "--device", DEFAULT_DEVICE]
+        if argv[0] == "train" and "--device" not in argv
+        else []
+    )
     assert cli_main(argv) == 2
     assert message in capsys.readouterr().err
 
 
 def test_cli_help_lists_every_option():
-    result = subprocess.run([sys.executable, "-m", "cdcgs", "train", "--help"], capture_output=True, text=True, cwd=ROOT)
+    result = subprocess.run(
+        [sys.executable, "-m", "cdcgs", "train", "--help"], capture_output=True, text=True, cwd=ROOT
+    )
     assert result.returncode == 0
-    for flag in ("--data", "--images", "--strategy", "--iters", "--device", "--out", "--resume", "--lr-means-init", "--max-gaussians", "--absgrad"):
+    for flag in (
+        "--data",
+        "--images",
+        "--strategy",
+        "--iters",
+        "--device",
+        "--out",
+        "--resume",
+        "--lr-means-init",
+        "--max-gaussians",
+        "--absgrad",
+    ):
         assert flag in result.stdout

@@ -28,9 +28,17 @@ from cdcgs.train.trainer import Trainer
 
 DEVICE = test_devices()[0]
 CHROMIUM_FLAGS = [
-    "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-dev-shm-usage",
-]  # fmt: skip
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-dev-shm-usage",
+]
 VIEWPORT = {"width": 800, "height": 600}
 
 
@@ -60,8 +68,17 @@ def trained(tmp_path_factory):
     """A small procedural scene and a model trained on it for 60 iterations."""
     root = tmp_path_factory.mktemp("viewer_e2e")
     scene = make_procedural_scene(root / "scene", views=12, width=64, height=48, points=800)
-    config = TrainConfig(data=DataConfig(data=scene), out=str(root / "run"), iters=60, device=DEVICE, eval_every=0,
-                         checkpoint_every=0, progress=False, save_renders=False, sh_every=50)  # fmt: skip
+    config = TrainConfig(
+        data=DataConfig(data=scene),
+        out=str(root / "run"),
+        iters=60,
+        device=DEVICE,
+        eval_every=0,
+        checkpoint_every=0,
+        progress=False,
+        save_renders=False,
+        sh_every=50,
+    )
     Trainer(config, {"densify_from": 10**6}).run()
     return scene, root / "run"
 
@@ -71,7 +88,9 @@ class Command:
 
     def __init__(self, *args):
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.process = subprocess.Popen([sys.executable, "-m", "cdcgs", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "cdcgs", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+        )
         self.lines: queue.Queue = queue.Queue()
         self.output: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
@@ -211,8 +230,10 @@ def test_train_view_shows_the_model_while_it_trains(browser, trained, tmp_path):
     import re
 
     scene, _ = trained
-    training = Command("train", "--data", scene, "--out", str(tmp_path / "live"), "--iters", "100000", "--device", DEVICE, "--no-progress",
-                       "--eval-every", "0", "--checkpoint-every", "0", "--view", "--view-port", "0", "--densify-from", "1000000")  # fmt: skip
+    options = ["--out", str(tmp_path / "live"), "--iters", "100000", "--device", DEVICE, "--no-progress"]
+    options += ["--eval-every", "0", "--checkpoint-every", "0", "--densify-from", "1000000"]
+    options += ["--view", "--view-port", "0"]
+    training = Command("train", "--data", scene, *options)
     try:
         url = url_of(training.wait_for("watch the training at", timeout=120))
         page = browser.new_page(viewport=VIEWPORT)
@@ -225,6 +246,7 @@ def test_train_view_shows_the_model_while_it_trains(browser, trained, tmp_path):
             return int(match.group(1).replace(",", "")) if match else None
 
         first_step = wait_until(step_shown, 30, "the training step in the page")
+
         # On a CPU a frame takes ~0.4 s, so snapshots come every ~8 s (5% of the time re-rendering).
         def newer_step():
             step = step_shown()

@@ -12,11 +12,67 @@ import cdcgs
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "examples"))
-import warp_launch  # noqa: E402
+import warp_launch  # noqa: E402  (examples/ is put on the path just above)
+
+PUBLIC_KERNEL_API = {
+    "TILE_SIZE",
+    "BLOCK_SIZE",
+    "Camera",
+    "make_camera",
+    "project_gaussians_kernel",
+    "sh_to_color_kernel",
+    "sh_to_color_backward_kernel",
+    "sh_to_color_grouped_backward_kernel",
+    "bin_gaussians",
+    "TileBins",
+    "blend_forward_kernel",
+    "blend_backward_kernel",
+    "blend_backward_lean_kernel",
+    "complexity_kernel",
+    "knn_search",
+}
 
 
 def test_kernels_do_not_import_torch():
     code = "import sys, cdcgs.kernels; assert 'torch' not in sys.modules, 'cdcgs.kernels imported torch'"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_kernel_package_exports_what_a_launch_needs():
+    """``cdcgs.kernels`` exports exactly what a ``wp.launch`` user needs; the binning internals
+    stay in their module, and the submodules stay importable under their own names."""
+    import importlib
+
+    import cdcgs.kernels as kernels
+
+    assert set(kernels.__all__) == PUBLIC_KERNEL_API and len(kernels.__all__) == len(PUBLIC_KERNEL_API)
+    for name in kernels.__all__:
+        assert getattr(kernels, name) is not None, name
+    from cdcgs.kernels.binning import count_tiles_kernel, emit_keys_kernel, gather_counts_kernel, tile_ranges_kernel
+
+    assert all(k is not None for k in (count_tiles_kernel, emit_keys_kernel, gather_counts_kernel, tile_ranges_kernel))
+    # `knn_search` does not shadow the submodule `knn` (a function named `knn` would).
+    knn_module = importlib.import_module("cdcgs.kernels.knn")
+    assert kernels.knn is knn_module and knn_module.knn_search is kernels.knn_search
+    assert kernels.BLOCK_SIZE == kernels.TILE_SIZE * kernels.TILE_SIZE
+
+
+def test_importing_cdcgs_leaves_warp_uninitialised(device):
+    """Warp's runtime starts on first use (a render), not when cdcgs or its kernels are imported."""
+    code = f"""
+import warp as wp
+calls = []
+real_init = wp.init
+wp.init = lambda: (calls.append(1), real_init())[1]
+import cdcgs, cdcgs.kernels, cdcgs.render, cdcgs.neighbors, cdcgs.complexity
+assert not calls, "importing cdcgs called wp.init()"
+import torch
+gaussian = [torch.tensor(v, device="{device}") for v in ([[0.0, 0.0, 3.0]], [[1.0, 0.0, 0.0, 0.0]], [[0.1, 0.1, 0.1]], [1.0])]
+K = [[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]]
+_, alpha, _ = cdcgs.rasterize(*gaussian, colors=torch.ones(1, 3, device="{device}"), viewmat=torch.eye(4), K=K, width=8, height=8)
+assert calls, "rendering did not initialise Warp"
+assert alpha.max() > 0.5
+"""
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
@@ -25,9 +81,17 @@ def test_plain_warp_launch_matches_rasterize(device):
     image = warp_launch.render(means, quats, scales, opacities, sh, viewmat, K, width, height, device=device)
     t = lambda a: torch.from_numpy(a).to(device)
     expected, _, _ = cdcgs.rasterize(
-        t(means), t(quats), t(scales), t(opacities), t(sh), viewmat=viewmat, K=K, width=width, height=height,
+        t(means),
+        t(quats),
+        t(scales),
+        t(opacities),
+        t(sh),
+        viewmat=viewmat,
+        K=K,
+        width=width,
+        height=height,
         background=[1.0, 1.0, 1.0],
-    )  # fmt: skip
+    )
     assert image.shape == (height, width, 3)
     assert (image < 0.99).any(), "the demo scene must not be empty"
     np.testing.assert_allclose(image, expected.cpu().numpy(), atol=1e-6)
@@ -49,22 +113,37 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         grad_colors = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
         center = wp.vec3(0.1, -0.2, 3.0)
         culled = np.arange(n) % 5 == 0
-        radii = wp.array(np.repeat(np.where(culled, 0, 3)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device)
+        radii = wp.array(
+            np.repeat(np.where(culled, 0, 3)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device
+        )
         colors = wp.empty(n, dtype=wp.vec3, device=device)
-        wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device)
+        wp.launch(
+            sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device
+        )
         assert (colors.numpy()[culled] == 0).all() and (colors.numpy()[~culled] > 0).any()
         generated = wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros((n, 16), dtype=wp.vec3, device=device)
         wp.launch(
-            sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None],
-            adj_inputs=[*generated, 0, wp.vec3(), None], adj_outputs=[grad_colors, None], adjoint=True, device=device,
-        )  # fmt: skip
+            sh_to_color_kernel,
+            n,
+            inputs=[means, sh, degree, center, radii],
+            outputs=[colors, None],
+            adj_inputs=[*generated, 0, wp.vec3(), None],
+            adj_outputs=[grad_colors, None],
+            adjoint=True,
+            device=device,
+        )
         written = wp.empty(n, dtype=wp.vec3, device=device), wp.empty((n, 16), dtype=wp.vec3, device=device)
         wp.launch(
-            sh_to_color_backward_kernel, n, inputs=[means, sh, degree, center, radii, colors, grad_colors], outputs=list(written),
+            sh_to_color_backward_kernel,
+            n,
+            inputs=[means, sh, degree, center, radii, colors, grad_colors],
+            outputs=list(written),
             device=device,
         )
         for name, ours, theirs in zip(("means", "sh"), written, generated):
-            assert np.abs(theirs.numpy()).max() > 0 or (name == "means" and degree == 0)  # degree 0 ignores the direction
+            assert np.abs(theirs.numpy()).max() > 0 or (
+                name == "means" and degree == 0
+            )  # degree 0 ignores the direction
             assert (ours.numpy()[culled] == 0).all()
             np.testing.assert_allclose(ours.numpy(), theirs.numpy(), atol=1e-5, rtol=1e-4)
 
@@ -78,11 +157,14 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
     import warp as wp
 
     from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel, sh_to_color_kernel
+    from cdcgs.kernels._constants import MAX_SH_COEFFICIENTS
 
     rng = np.random.default_rng(1)
     n = 77  # odd: the last warp holds one Gaussian
     culled = np.arange(n) % 7 == 3
-    radii = wp.array(np.repeat(np.where(culled, 0, 2)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device)
+    radii = wp.array(
+        np.repeat(np.where(culled, 0, 2)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device
+    )
     for degree in range(4):
         for stored in sorted({(degree + 1) ** 2, 16}):
             means = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
@@ -92,13 +174,15 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             grad_colors = wp.array(rng.normal(size=(n, 3)).astype(np.float32), dtype=wp.vec3, device=device)
             center = wp.vec3(0.1, -0.2, 3.0)
             colors = wp.empty(n, dtype=wp.vec3, device=device)
-            wp.launch(sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device)
+            wp.launch(
+                sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device
+            )
             clamped = (np.arange(n) % 4 == 0) & ~culled
             assert (colors.numpy()[clamped, 1] == 0).all() and (colors.numpy()[~culled] > 0).any()
             outputs = {}
             for name, backward, dim in (
                 ("per gaussian", sh_to_color_backward_kernel, n),
-                ("grouped", sh_to_color_grouped_backward_kernel, 16 * n),
+                ("grouped", sh_to_color_grouped_backward_kernel, MAX_SH_COEFFICIENTS * n),
             ):
                 grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grad_sh = wp.full((n, stored), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
@@ -115,9 +199,9 @@ def test_lean_blend_adjoint_equals_the_full_one(device):
     AbsGS sums are wanted) gives the full adjoint's gradients for means, conics, colours and
     opacities, and leaves the depth and AbsGS outputs alone."""
     import warp as wp
-
-    from cdcgs.kernels import TILE_SIZE, blend_backward_kernel, blend_backward_lean_kernel
     from conftest import make_scene
+
+    from cdcgs.kernels import BLOCK_SIZE, blend_backward_kernel, blend_backward_lean_kernel
 
     scene = make_scene(80, 40, 24, sh_degree=1, seed=4, hard_cases=False)
     tensors = [t.to(device) for t in scene.tensors()]
@@ -127,19 +211,33 @@ def test_lean_blend_adjoint_equals_the_full_one(device):
     rng = torch.Generator().manual_seed(5)
     grad_image, grad_alpha = torch.randn(h, w, 3, generator=rng).to(device), torch.randn(h, w, generator=rng).to(device)
     inputs = [
-        arr(info.tile_ranges.view(-1, 2), wp.int32), arr(info.sorted_gauss_ids, wp.int32), arr(info.means2d, wp.vec2),
-        arr(info.conics, wp.vec3), arr(info.colors, wp.vec3), arr(info.opacities, wp.float32), arr(info.depths, wp.float32),
-        wp.array([wp.vec3(0.2, 0.3, 0.4)], dtype=wp.vec3, device=device), w, h, info.tile_ranges.shape[1],
-        arr(info.transmittance, wp.float32), arr(info.last_contributor, wp.int32), arr(grad_image, wp.vec3),
-        arr(grad_alpha, wp.float32), wp.zeros((h, w), dtype=float, device=device),
-    ]  # fmt: skip
+        arr(info.tile_ranges, wp.int32),
+        arr(info.sorted_gauss_ids, wp.int32),
+        arr(info.means2d, wp.vec2),
+        arr(info.conics, wp.vec3),
+        arr(info.colors, wp.vec3),
+        arr(info.opacities, wp.float32),
+        arr(info.depths, wp.float32),
+        wp.array([wp.vec3(0.2, 0.3, 0.4)], dtype=wp.vec3, device=device),
+        w,
+        h,
+        info.tiles_x,
+        arr(info.transmittance, wp.float32),
+        arr(info.last_contributor, wp.int32),
+        arr(grad_image, wp.vec3),
+        arr(grad_alpha, wp.float32),
+        wp.zeros((h, w), dtype=float, device=device),
+    ]
     n = info.means2d.shape[0]
     results = {}
     for name, kernel in (("full", blend_backward_kernel), ("lean", blend_backward_lean_kernel)):
         outputs = [wp.zeros(n, dtype=t, device=device) for t in (wp.vec2, wp.vec3, wp.vec3, float)]
-        outputs += [wp.full(n, 7.0, dtype=float, device=device), wp.full(n, wp.vec2(7.0, 7.0), dtype=wp.vec2, device=device)]
-        dim = info.tile_ranges.shape[0] * info.tile_ranges.shape[1] * TILE_SIZE * TILE_SIZE
-        wp.launch(kernel, dim, inputs=inputs, outputs=outputs, block_dim=TILE_SIZE * TILE_SIZE, device=device)
+        outputs += [
+            wp.full(n, 7.0, dtype=float, device=device),
+            wp.full(n, wp.vec2(7.0, 7.0), dtype=wp.vec2, device=device),
+        ]
+        dim = info.tiles_x * info.tiles_y * BLOCK_SIZE
+        wp.launch(kernel, dim, inputs=inputs, outputs=outputs, block_dim=BLOCK_SIZE, device=device)
         results[name] = [o.numpy() for o in outputs]
     for full, lean in zip(results["full"][:4], results["lean"][:4]):
         assert np.abs(full).max() > 0
@@ -149,14 +247,14 @@ def test_lean_blend_adjoint_equals_the_full_one(device):
 
 
 def test_launch_arguments_do_not_keep_tensors_alive():
-    """``interop.wp_arg`` caches descriptors by address; a cached descriptor must not pin its tensor
+    """``_interop.wp_arg`` caches descriptors by address; a cached descriptor must not pin its tensor
     (every tensor ever rendered would stay allocated, and autograd would copy gradients it could take)."""
     import gc
     import weakref
 
     import warp as wp
 
-    from cdcgs.interop import wp_arg
+    from cdcgs._interop import wp_arg
 
     tensor = torch.zeros(10, 3)
     first = wp_arg(tensor, wp.vec3)
@@ -167,13 +265,45 @@ def test_launch_arguments_do_not_keep_tensors_alive():
     assert alive() is None
 
 
+def test_warp_still_pins_tensors_where_unpin_descriptor_looks():
+    """``_interop.unpin_descriptor`` clears two private attributes of what
+    ``wp.from_torch(..., return_ctype=True)`` returns (the one use of Warp internals in cdcgs). This
+    fails when Warp stops keeping the tensor there: then the descriptor would pin it some other way
+    and the cache would leak, or the code has nothing left to clear."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from cdcgs._interop import unpin_descriptor
+
+    wp.init()
+    tensor = torch.zeros(10, 3)
+    grad = torch.zeros(10, 3)
+    descriptor = wp.from_torch(tensor, dtype=wp.vec3, grad=grad, return_ctype=True)
+    assert descriptor._ref is tensor and descriptor._gradref is grad  # Warp pins both here
+    alive, grad_alive = weakref.ref(tensor), weakref.ref(grad)
+    del tensor, grad
+    gc.collect()
+    assert alive() is not None and grad_alive() is not None  # pinned: kept alive by the descriptor
+    unpin_descriptor(descriptor)
+    gc.collect()
+    assert alive() is None and grad_alive() is None  # the descriptor was the last reference
+
+    class Foreign:
+        pass
+
+    with pytest.raises(RuntimeError, match="_ref/_gradref"):
+        unpin_descriptor(Foreign())
+
+
 @pytest.mark.parametrize("threads", [1, 3, 64])
 def test_nonfinite_check_strides_over_every_value(device, threads):
     """Each thread of ``find_nonfinite_kernel`` walks its share of every input; whatever the launch
     size, exactly the inputs holding a NaN or an infinity are flagged (numpy decides)."""
     import warp as wp
 
-    from cdcgs.kernels.checks import find_nonfinite_kernel
+    from cdcgs.kernels._checks import find_nonfinite_kernel
 
     rng = np.random.default_rng(4)
     for trial in range(6):
@@ -201,10 +331,18 @@ def test_projection_writes_every_entry_and_flags_nonfinite_inputs(device):
     opacities[20:30] = 0.002  # too transparent to reach 1/255
     camera = make_camera(viewmat, K, width, height)
     n = len(means)
-    specs = [(wp.vec2, 2, np.float32), (wp.vec3, 3, np.float32), (float, 1, np.float32), (float, 1, np.float32), (wp.vec2i, 2, np.int32)]
+    specs = [
+        (wp.vec2, 2, np.float32),
+        (wp.vec3, 3, np.float32),
+        (float, 1, np.float32),
+        (float, 1, np.float32),
+        (wp.vec2i, 2, np.int32),
+    ]
 
     def project(inputs, fill, flags=None):
-        outputs = [wp.array(np.full((n, k) if k > 1 else n, fill, dtype=npt), dtype=dt, device=device) for dt, k, npt in specs]
+        outputs = [
+            wp.array(np.full((n, k) if k > 1 else n, fill, dtype=npt), dtype=dt, device=device) for dt, k, npt in specs
+        ]
         arrays = [wp.array(a, dtype=dt, device=device) for a, dt in zip(inputs, (wp.vec3, wp.vec4, wp.vec3, float))]
         wp.launch(project_gaussians_kernel, n, inputs=[*arrays, camera, 0], outputs=[*outputs, flags], device=device)
         return [o.numpy() for o in outputs]

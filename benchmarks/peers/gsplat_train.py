@@ -127,12 +127,23 @@ def make_renderer(rasterization, params: dict, absgrad: bool):
 
     def render(view, viewmat, K, sh_degree, background=None):
         colors, alphas, info = rasterization(
-            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
-            opacities=torch.sigmoid(params["opacities"]), colors=torch.cat([params["sh0"], params["shN"]], 1),
-            viewmats=viewmat, Ks=K, width=view.width, height=view.height, near_plane=0.01, far_plane=1e10,
-            sh_degree=sh_degree, packed=False, absgrad=absgrad, rasterize_mode="classic",
+            means=params["means"],
+            quats=params["quats"],
+            scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]),
+            colors=torch.cat([params["sh0"], params["shN"]], 1),
+            viewmats=viewmat,
+            Ks=K,
+            width=view.width,
+            height=view.height,
+            near_plane=0.01,
+            far_plane=1e10,
+            sh_degree=sh_degree,
+            packed=False,
+            absgrad=absgrad,
+            rasterize_mode="classic",
             backgrounds=None if background is None else background[None],
-        )  # fmt: skip
+        )
         return colors[0], alphas[0], info
 
     return render
@@ -219,10 +230,16 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
             )
     bar.close()
     sh = torch.cat([params["sh0"], params["shN"]], 1).detach()
-    write_ply(os.path.join(args.out, "point_cloud.ply"), GaussianPly(
-        means=params["means"].detach(), log_scales=params["scales"].detach(), quats=params["quats"].detach(),
-        opacity_logits=params["opacities"].detach(), sh=sh,
-    ))  # fmt: skip
+    write_ply(
+        os.path.join(args.out, "point_cloud.ply"),
+        GaussianPly(
+            means=params["means"].detach(),
+            log_scales=params["scales"].detach(),
+            quats=params["quats"].detach(),
+            opacity_logits=params["opacities"].detach(),
+            sh=sh,
+        ),
+    )
     metrics = {"views": 0}
     if scene.test:
         metrics = evaluate_with(render, params, scene.test, sh_degree_at(args.iters - 1), device)
@@ -237,13 +254,18 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "strategy": {"name": f"gsplat {api.version} DefaultStrategy", **dataclasses.asdict(strategy)},
         "protocol": {
-            "data": os.path.abspath(args.data), "images": args.images, "seed": args.seed,
-            "train_views": len(scene.train), "test_views": len(scene.test),
-            "image_size": [scene.train[0].width, scene.train[0].height], "initial_points": int(scene.points.shape[0]),
-            "scene_scale": scene_scale, "adam": "fused" if fused else "torch default",
+            "data": os.path.abspath(args.data),
+            "images": args.images,
+            "seed": args.seed,
+            "train_views": len(scene.train),
+            "test_views": len(scene.test),
+            "image_size": [scene.train[0].width, scene.train[0].height],
+            "initial_points": int(scene.points.shape[0]),
+            "scene_scale": scene_scale,
+            "adam": "fused" if fused else "torch default",
             "renderer": f"gsplat {api.version} rasterization(packed=False, rasterize_mode='classic')",
         },
-    }  # fmt: skip
+    }
     with open(os.path.join(args.out, "metrics.json"), "w") as f:
         json.dump(result, f, indent=2)
     if metrics["views"]:

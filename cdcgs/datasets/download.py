@@ -13,6 +13,8 @@ import zipfile
 
 from ..errors import InputError
 
+__all__ = ["MIPNERF360_SCENES", "download", "download_mipnerf360", "extract_scene"]
+
 log = logging.getLogger("cdcgs")
 
 MIPNERF360_URL = "http://storage.googleapis.com/gresearch/refraw360/360_v2.zip"
@@ -44,7 +46,14 @@ def download(url: str, path: str, *, retries: int = 5, progress: bool = True, ti
                     length = response.headers.get("Content-Length")
                     total = have + int(length) if length is not None else None
                     if bar is None:
-                        bar = tqdm(total=total, initial=have, unit="B", unit_scale=True, desc=os.path.basename(path), disable=not progress)
+                        bar = tqdm(
+                            total=total,
+                            initial=have,
+                            unit="B",
+                            unit_scale=True,
+                            desc=os.path.basename(path),
+                            disable=not progress,
+                        )
                     else:
                         bar.reset(total=total)
                         bar.update(have)
@@ -66,7 +75,10 @@ def download(url: str, path: str, *, retries: int = 5, progress: bool = True, ti
                 raise InputError(url, f"the server answered HTTP {err.code} {err.reason}") from None
             except (ConnectionError, TimeoutError, urllib.error.URLError, OSError) as err:
                 if attempt == retries:
-                    raise InputError(url, f"download failed after {retries + 1} attempts ({err}); run the command again to resume from {part}") from None
+                    raise InputError(
+                        url,
+                        f"download failed after {retries + 1} attempts ({err}); run the command again to resume from {part}",
+                    ) from None
                 log.warning("download interrupted (%s); resuming", err)
                 time.sleep(min(2**attempt, 30) * 0.1)
     finally:
@@ -101,7 +113,9 @@ def extract_scene(archive: str, scene: str, dest: str) -> str:
     return target
 
 
-def download_mipnerf360(scene: str, dest: str = "data/360_v2", url: str | None = None, keep_archive: bool = True, progress: bool = True) -> str:
+def download_mipnerf360(
+    scene: str, dest: str = "data/360_v2", url: str | None = None, keep_archive: bool = True, progress: bool = True
+) -> str:
     """Download the MipNeRF-360 archive (resumable) and extract ``scene`` into ``dest/scene``."""
     if url is None and scene not in MIPNERF360_SCENES:
         raise ValueError(f"unknown MipNeRF-360 scene {scene!r}; the scenes are {', '.join(MIPNERF360_SCENES)}")

@@ -16,6 +16,8 @@ import os
 import numpy as np
 from PIL import Image
 
+__all__ = ["make_procedural_scene", "orbit_cameras", "render", "sparse_points", "trace"]
+
 LIGHT = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
 LOOK_AT = np.array([0.0, 0.4, 0.0])
 DOME_RADIUS = 7.0
@@ -163,7 +165,9 @@ def render(w2c: np.ndarray, intrinsics, width: int, height: int, supersample: in
     s = supersample
     offsets = (np.arange(s) + 0.5) / s
     v, u = np.mgrid[0:height, 0:width]
-    u, v = np.broadcast_arrays(u[..., None, None] + offsets[None, None, None, :], v[..., None, None] + offsets[None, None, :, None])
+    u, v = np.broadcast_arrays(
+        u[..., None, None] + offsets[None, None, None, :], v[..., None, None] + offsets[None, None, :, None]
+    )
     u, v = u.reshape(-1), v.reshape(-1)
     cam_dirs = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
     R, t = w2c[:3, :3], w2c[:3, 3]
@@ -195,7 +199,9 @@ def sparse_points(poses, intrinsics, width, height, count: int = 6000, seed: int
     return points[keep] + jitter, (colors[keep] * 255).astype(np.uint8)
 
 
-def make_procedural_scene(root, *, views: int = 40, width: int = 96, height: int = 72, points: int = 6000, seed: int = 0) -> str:
+def make_procedural_scene(
+    root, *, views: int = 40, width: int = 96, height: int = 72, points: int = 6000, seed: int = 0
+) -> str:
     """Write the scene to ``root`` as a COLMAP folder (sparse/0, images/); returns ``root``."""
     import pycolmap  # after PIL (see cdcgs/io/colmap.py)
 
@@ -209,7 +215,9 @@ def make_procedural_scene(root, *, views: int = 40, width: int = 96, height: int
         name = f"view_{i:03d}.png"
         Image.fromarray(render(w2c, intrinsics, width, height)).save(os.path.join(root, "images", name))
         image = pycolmap.Image(name=name, camera_id=1, image_id=i + 1)
-        reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3]))
+        reconstruction.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
+        )
     cloud, colors = sparse_points(poses, intrinsics, width, height, count=points, seed=seed)
     for p, c in zip(cloud, colors):
         reconstruction.add_point3D(p, pycolmap.Track(), c)

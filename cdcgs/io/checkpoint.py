@@ -1,7 +1,7 @@
 """Checkpoints of a whole training state, written atomically.
 
 A checkpoint is one ``torch.save`` file of a dict (parameters, optimizer moments, strategy state,
-step, random generator states, config as plain data). It is written to a temporary file in the
+step, the run's random generator states, config as plain data). It is written to a temporary file in the
 same folder, flushed to disk, then renamed over the old one, so a crash while saving leaves the
 previous checkpoint intact.
 """
@@ -10,15 +10,13 @@ from __future__ import annotations
 
 import os
 import pickle
-import random
 import zipfile
 
-import numpy as np
 import torch
 
 from ..errors import InputError
 
-__all__ = ["capture_rng_state", "load_checkpoint", "restore_rng_state", "save_checkpoint"]
+__all__ = ["load_checkpoint", "save_checkpoint"]
 
 
 def save_checkpoint(path, state: dict) -> None:
@@ -60,20 +58,3 @@ def load_checkpoint(path, map_location="cpu") -> dict:
     if not isinstance(state, dict):
         raise InputError(path, f"not a cdcgs checkpoint (holds a {type(state).__name__}, not a dict)")
     return state
-
-
-def capture_rng_state() -> dict:
-    """The states of Python's, numpy's and torch's (CPU and every CUDA device) generators."""
-    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def restore_rng_state(state: dict) -> None:
-    """Put back generator states captured by :func:`capture_rng_state`."""
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])

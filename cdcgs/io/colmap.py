@@ -19,8 +19,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..errors import InputError
-from .scene import View, report_missing
+from ..errors import InputError, OptionError
+from .views import View, random_points_in_frustums, report_missing
+
+__all__ = ["find_model_dir", "read_colmap", "read_reconstruction", "undistorted_scene"]
 
 log = logging.getLogger("cdcgs")
 
@@ -55,7 +57,7 @@ def _folder_and_factor(root: str, images: str | None, factor: int | None) -> tup
     match = re.fullmatch(r".*_(\d+)", images)
     implied = int(match.group(1)) if match else 1
     if factor is not None and factor != implied:
-        raise ValueError(f"images={images!r} implies factor {implied}, but factor={factor} was given")
+        raise OptionError(f"images={images!r} implies factor {implied}, but factor={factor} was given")
     return images, implied
 
 
@@ -77,9 +79,8 @@ def _fingerprint(model_dir: str, image_dir: str) -> str:
 def _writable(folder: str) -> bool:
     try:
         os.makedirs(folder, exist_ok=True)
-        probe = tempfile.NamedTemporaryFile(dir=folder, delete=True)
-        probe.close()
-        return True
+        with tempfile.NamedTemporaryFile(dir=folder, delete=True):
+            return True
     except OSError:
         return False
 
@@ -98,7 +99,12 @@ def undistorted_scene(root: str, model_dir: str, reconstruction, image_dir: str)
     cache = os.path.join(root, ".cdcgs_cache", f"undistorted_{folder_name}")
     if not _writable(os.path.dirname(cache)):
         user_cache = os.environ.get("XDG_CACHE_HOME", os.path.join(os.path.expanduser("~"), ".cache"))
-        cache = os.path.join(user_cache, "cdcgs", hashlib.sha256(os.path.abspath(root).encode()).hexdigest()[:16], f"undistorted_{folder_name}")
+        cache = os.path.join(
+            user_cache,
+            "cdcgs",
+            hashlib.sha256(os.path.abspath(root).encode()).hexdigest()[:16],
+            f"undistorted_{folder_name}",
+        )
     marker = os.path.join(cache, "cdcgs_undistorted.json")
     if os.path.isfile(marker):
         with open(marker) as f:
@@ -156,7 +162,9 @@ def read_colmap(root: str, images: str | None = None, factor: int | None = None,
     registered = sorted((img for img in reconstruction.images.values() if img.has_pose), key=lambda img: img.name)
     missing = [img.name for img in registered if not os.path.isfile(os.path.join(image_dir, img.name))]
     if missing:
-        message = f"{len(missing)} of {len(registered)} images of the model are missing from the folder, first {missing[:5]}"
+        message = (
+            f"{len(missing)} of {len(registered)} images of the model are missing from the folder, first {missing[:5]}"
+        )
         report_missing(image_dir, message, skip_missing, notes)
         registered = [img for img in registered if img.name not in set(missing)]
 
@@ -186,7 +194,13 @@ def read_colmap(root: str, images: str | None = None, factor: int | None = None,
         notes.append(f"distorted cameras undistorted to pinhole, cached in {os.path.dirname(model_dir)}")
         by_name = {img.name: img for img in reconstruction.images.values()}
         registered = [by_name[img.name] for img in registered]
-        sizes = {img.name: (reconstruction.cameras[img.camera_id].width * resize_by, reconstruction.cameras[img.camera_id].height * resize_by) for img in registered}
+        sizes = {
+            img.name: (
+                reconstruction.cameras[img.camera_id].width * resize_by,
+                reconstruction.cameras[img.camera_id].height * resize_by,
+            )
+            for img in registered
+        }
 
     views = []
     for img in registered:
@@ -216,8 +230,6 @@ def read_colmap(root: str, images: str | None = None, factor: int | None = None,
         points = torch.from_numpy(np.array([p.xyz for p in points3d.values()], dtype=np.float32))
         colors = torch.from_numpy(np.array([p.color for p in points3d.values()], dtype=np.uint8))
     else:
-        from .scene import random_points_in_frustums
-
         points, colors = random_points_in_frustums(views)
         notes.append("the COLMAP model has no 3D points: random initial points inside the cameras' common view")
     return views, points, colors, notes

@@ -59,7 +59,7 @@ def write_ply(path, model: GaussianPly) -> None:
         value = getattr(model, name)
         if tuple(value.shape) != shape:
             raise ValueError(f"{name} must have shape {list(shape)}, got {list(value.shape)}")
-    cpu = lambda t: t.detach().to("cpu", torch.float32).numpy()  # noqa: E731
+    cpu = lambda t: t.detach().to("cpu", torch.float32).numpy()
     sh = cpu(model.sh)
     columns = [
         cpu(model.means),
@@ -153,11 +153,11 @@ def read_ply(path, device="cpu") -> GaussianPly:
     """
     path = os.fspath(path)
     try:
-        f = open(path, "rb")
+        f = open(path, "rb")  # noqa: SIM115  (closed by the with below; only opening errors are caught here)
     except OSError as err:
         raise InputError(path, f"cannot open the PLY file: {err.strerror}") from None
     with f:
-        count, names, offset = _parse_header(path, f)
+        count, names, _ = _parse_header(path, f)
         num_rest = sum(name.startswith("f_rest_") for name in names)
         if num_rest % 3 != 0 or math.isqrt(num_rest // 3 + 1) ** 2 != num_rest // 3 + 1 or num_rest > 45:
             raise InputError(path, f"{num_rest} f_rest fields: expected 3 x ((degree+1)^2 - 1) for degree 0..3")
@@ -179,9 +179,12 @@ def read_ply(path, device="cpu") -> GaussianPly:
     data = np.stack([table[:, names.index(n)] if n in names else zeros for n in expected], axis=1)
     bad = ~np.isfinite(data).all(axis=1)
     if bad.any():
-        raise InputError(path, f"{int(bad.sum())} of {count} vertices hold NaN or infinite values (the first is vertex {int(np.argmax(bad))})")
+        raise InputError(
+            path,
+            f"{int(bad.sum())} of {count} vertices hold NaN or infinite values (the first is vertex {int(np.argmax(bad))})",
+        )
     k = num_rest // 3 + 1
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)  # noqa: E731
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(device)
     sh = np.empty((count, k, 3), np.float32)
     sh[:, 0, :] = data[:, 6:9]
     sh[:, 1:, :] = data[:, 9 : 9 + num_rest].reshape(count, 3, k - 1).transpose(0, 2, 1)

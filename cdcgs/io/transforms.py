@@ -18,12 +18,28 @@ import torch
 from PIL import Image
 
 from ..errors import InputError
-from .scene import View, random_points_in_frustums, report_missing
+from .views import View, random_points_in_frustums, report_missing
+
+__all__ = ["read_transforms"]
 
 log = logging.getLogger("cdcgs")
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "k1", "k2", "k3", "p1", "p2")
+INTRINSIC_KEYS = (
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "camera_angle_x",
+    "camera_angle_y",
+    "k1",
+    "k2",
+    "k3",
+    "p1",
+    "p2",
+)
 IMAGE_SUFFIXES = ("", ".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
 
@@ -49,10 +65,15 @@ def _pose(json_path, where: str, matrix) -> torch.Tensor:
     if c2w.shape == (3, 4):
         c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
     if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
-        raise InputError(json_path, f"{where}: transform_matrix must be a finite 4x4 (or 3x4) matrix, got shape {c2w.shape}")
+        raise InputError(
+            json_path, f"{where}: transform_matrix must be a finite 4x4 (or 3x4) matrix, got shape {c2w.shape}"
+        )
     rotation = c2w[:3, :3]
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3) or np.linalg.det(rotation) < 0:
-        raise InputError(json_path, f"{where}: transform_matrix's rotation is not orthonormal (scaled or mirrored poses are not supported)")
+        raise InputError(
+            json_path,
+            f"{where}: transform_matrix's rotation is not orthonormal (scaled or mirrored poses are not supported)",
+        )
     c2w = c2w @ OPENGL_TO_OPENCV
     w2c = np.eye(4)
     w2c[:3, :3] = c2w[:3, :3].T
@@ -67,7 +88,9 @@ def _read_point_cloud(json_path: str, ply_path: str):
         vertex = PlyData.read(ply_path)["vertex"]
         points = np.stack([vertex["x"], vertex["y"], vertex["z"]], -1).astype(np.float32)
     except (OSError, KeyError, ValueError, IndexError) as err:
-        raise InputError(ply_path, f"cannot read the initial point cloud named by {os.path.basename(json_path)}: {err}") from None
+        raise InputError(
+            ply_path, f"cannot read the initial point cloud named by {os.path.basename(json_path)}: {err}"
+        ) from None
     names = vertex.data.dtype.names
     if all(c in names for c in ("red", "green", "blue")):
         colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], -1).astype(np.uint8)
@@ -113,7 +136,10 @@ def read_transforms(json_path: str, factor: int = 1, skip_missing: bool = False)
             raise InputError(image_path, f"cannot read the image: {err}") from None
         width, height = int(params.get("w", file_size[0])), int(params.get("h", file_size[1]))
         if (width, height) != file_size:
-            raise InputError(image_path, f"image is {file_size[0]}x{file_size[1]} but {os.path.basename(json_path)} says {width}x{height}")
+            raise InputError(
+                image_path,
+                f"image is {file_size[0]}x{file_size[1]} but {os.path.basename(json_path)} says {width}x{height}",
+            )
         if "fl_x" in params:
             fx = params["fl_x"]
         elif "camera_angle_x" in params:
@@ -148,11 +174,16 @@ def read_transforms(json_path: str, factor: int = 1, skip_missing: bool = False)
         K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
         views.append(
             View(
-                name=os.path.relpath(image_path, base), image_path=image_path, width=width, height=height, K=K,
-                viewmat=_pose(json_path, where, frame["transform_matrix"]), resize_from=resize_from,
+                name=os.path.relpath(image_path, base),
+                image_path=image_path,
+                width=width,
+                height=height,
+                K=K,
+                viewmat=_pose(json_path, where, frame["transform_matrix"]),
+                resize_from=resize_from,
                 undistort_camera=undistort,
             )
-        )  # fmt: skip
+        )
     if missing:
         message = f"{len(missing)} of {len(meta['frames'])} frames have no image file, first {missing[:5]}"
         report_missing(json_path, message, skip_missing, notes)

@@ -1,7 +1,19 @@
-"""Pure-Warp kernels of cdcgs: usable with ``wp.launch`` and Warp arrays alone, no torch needed."""
+"""Pure-Warp kernels of cdcgs: usable with ``wp.launch`` and Warp arrays alone, no torch needed.
 
-from .binning import TILE_SIZE, TileBins, bin_gaussians, count_tiles_kernel, emit_keys_kernel, gather_counts_kernel, tile_ranges_kernel
-from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
+What a ``wp.launch`` user needs: the camera (``make_camera``), the projection and SH colour kernels
+and their adjoints, ``bin_gaussians`` (the tiles' depth-sorted lists), the blend kernels (launch
+with ``dim=tiles_x * tiles_y * BLOCK_SIZE``, ``block_dim=BLOCK_SIZE``), the CDC-GS complexity pass
+and the exact KNN (``knn_search``). ``examples/warp_launch.py`` renders an image with them.
+
+The binning kernels that ``bin_gaussians`` runs stay importable from ``cdcgs.kernels.binning`` for
+callers that manage their own buffers; the submodules (``projection``, ``binning``, ``blend``,
+``knn``) stay importable as such.
+"""
+
+from ._constants import BLOCK_SIZE, TILE_SIZE
+from .binning import TileBins, bin_gaussians
+from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel, complexity_kernel
+from .knn import knn_search
 from .projection import (
     Camera,
     make_camera,
@@ -12,6 +24,7 @@ from .projection import (
 )
 
 __all__ = [
+    "BLOCK_SIZE",
     "TILE_SIZE",
     "Camera",
     "TileBins",
@@ -19,13 +32,11 @@ __all__ = [
     "blend_backward_kernel",
     "blend_backward_lean_kernel",
     "blend_forward_kernel",
-    "count_tiles_kernel",
-    "emit_keys_kernel",
-    "gather_counts_kernel",
+    "complexity_kernel",
+    "knn_search",
     "make_camera",
     "project_gaussians_kernel",
     "sh_to_color_backward_kernel",
     "sh_to_color_grouped_backward_kernel",
     "sh_to_color_kernel",
-    "tile_ranges_kernel",
 ]

@@ -1,15 +1,30 @@
-"""Tile binning: which 16x16 pixel tiles each projected Gaussian touches, sorted by (tile, depth).
+"""Tile binning: which TILE_SIZE x TILE_SIZE (16 x 16) pixel tiles each projected Gaussian
+touches, sorted by (tile, depth).
 
 Pure Warp. ``bin_gaussians`` runs the whole sequence (depth sort, count, prefix sum, keys, sort by
-tile, tile ranges) on Warp arrays; the kernels are public for callers that manage their own buffers.
+tile, tile ranges) on Warp arrays; the kernels stay importable from this module for callers that
+manage their own buffers.
+
+Tiles are numbered row-major, ``tile = tile_y * tiles_x + tile_x``, and the tile ranges are one
+[tiles_y * tiles_x, 2] int32 array indexed by that number: ``[start, end)`` of each tile's run in
+the sorted Gaussian ids.
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import warp as wp
 
-TILE_SIZE = 16
+from ._constants import TILE_SIZE
+
+__all__ = [
+    "TileBins",
+    "bin_gaussians",
+    "count_tiles_kernel",
+    "emit_keys_kernel",
+    "gather_counts_kernel",
+    "tile_ranges_kernel",
+]
 
 
 @wp.func
@@ -17,10 +32,11 @@ def tile_rect(mean2d: wp.vec2, radius: wp.vec2i, tiles_x: int, tiles_y: int):
     """Tiles [x0, x1) x [y0, y1) holding every pixel centre within the Gaussian's radii."""
     fx = float(radius[0])
     fy = float(radius[1])
-    x0 = wp.clamp(int(wp.floor((mean2d[0] - fx) / 16.0)), 0, tiles_x)
-    x1 = wp.clamp(int(wp.floor((mean2d[0] + fx) / 16.0)) + 1, 0, tiles_x)
-    y0 = wp.clamp(int(wp.floor((mean2d[1] - fy) / 16.0)), 0, tiles_y)
-    y1 = wp.clamp(int(wp.floor((mean2d[1] + fy) / 16.0)) + 1, 0, tiles_y)
+    side = wp.static(float(TILE_SIZE))
+    x0 = wp.clamp(int(wp.floor((mean2d[0] - fx) / side)), 0, tiles_x)
+    x1 = wp.clamp(int(wp.floor((mean2d[0] + fx) / side)) + 1, 0, tiles_x)
+    y0 = wp.clamp(int(wp.floor((mean2d[1] - fy) / side)), 0, tiles_y)
+    y1 = wp.clamp(int(wp.floor((mean2d[1] + fy) / side)) + 1, 0, tiles_y)
     return wp.vec4i(x0, x1, y0, y1)
 
 
@@ -104,7 +120,8 @@ def tile_ranges_kernel(
     num_intersections: int,
     tile_ranges_out: wp.array2d(dtype=wp.int32),
 ):
-    """[start, end) of each tile's run in the sorted intersections (tiles with none keep 0, 0)."""
+    """[start, end) of each tile's run in the sorted intersections (tiles with none keep 0, 0);
+    ``tile_ranges_out`` is [tiles_y * tiles_x, 2], zeroed before."""
     k = wp.tid()
     tile = sorted_keys[k]
     if k == 0:
@@ -126,8 +143,9 @@ class TileBins:
     tiles_y: int
     tile_counts: wp.array  # [N] int32, tiles touched by each Gaussian
     num_intersections: int
-    gauss_ids: wp.array  # [num_intersections] int32, Gaussian ids sorted by (tile, depth)
-    tile_ranges: wp.array  # [tiles_y * tiles_x, 2] int32, [start, end) into gauss_ids
+    sorted_gauss_ids: wp.array  # [num_intersections] int32, Gaussian ids sorted by (tile, depth)
+    # [tiles_y * tiles_x, 2] int32, [start, end) into sorted_gauss_ids of tile ty * tiles_x + tx
+    tile_ranges: wp.array
 
 
 def _warp_empty(shape, dtype, device):
@@ -144,7 +162,7 @@ def bin_gaussians(
     zeros: Callable | None = None,
     read_count: Callable | None = None,
 ) -> TileBins:
-    """Bin projected Gaussians into 16x16 tiles and sort each tile's list by depth.
+    """Bin projected Gaussians into TILE_SIZE x TILE_SIZE tiles and sort each tile's list by depth.
 
     Args:
         means2d: [N] vec2 pixel means; radii: [N] vec2i per-axis pixel radii (0 = culled);
@@ -174,9 +192,12 @@ def bin_gaussians(
     depth_keys = allocate((2 * n,), wp.int32, device)
     depth_order = allocate((2 * n,), wp.int32, device)
     wp.launch(
-        count_tiles_kernel, n, inputs=[means2d, radii, depths.view(wp.int32), tiles_x, tiles_y],
-        outputs=[tile_counts, tile_rects, depth_keys, depth_order], device=device,
-    )  # fmt: skip
+        count_tiles_kernel,
+        n,
+        inputs=[means2d, radii, depths.view(wp.int32), tiles_x, tiles_y],
+        outputs=[tile_counts, tile_rects, depth_keys, depth_order],
+        device=device,
+    )
     wp.utils.radix_sort_pairs(depth_keys, depth_order, n, end_bit=31)
     ordered_counts = depth_keys[:n]  # the sorted depth keys are spent: their buffer takes the counts
     wp.launch(gather_counts_kernel, n, inputs=[tile_counts, depth_order], outputs=[ordered_counts], device=device)
@@ -192,7 +213,11 @@ def bin_gaussians(
     gauss_ids = allocate((max(2 * total, 2),), wp.int32, device)
     if total > 0:
         wp.launch(
-            emit_keys_kernel, n, inputs=[tile_rects, depth_order, ordered_offsets, tiles_x], outputs=[keys, gauss_ids], device=device
+            emit_keys_kernel,
+            n,
+            inputs=[tile_rects, depth_order, ordered_offsets, tiles_x],
+            outputs=[keys, gauss_ids],
+            device=device,
         )
         wp.utils.radix_sort_pairs(keys, gauss_ids, total, end_bit=max(int(num_tiles - 1).bit_length(), 1))
         wp.launch(tile_ranges_kernel, total, inputs=[keys, total], outputs=[tile_ranges], device=device)
@@ -201,6 +226,6 @@ def bin_gaussians(
         tiles_y=tiles_y,
         tile_counts=tile_counts,
         num_intersections=total,
-        gauss_ids=gauss_ids[:total] if total > 0 else gauss_ids[:0],
+        sorted_gauss_ids=gauss_ids[:total] if total > 0 else gauss_ids[:0],
         tile_ranges=tile_ranges,
     )

@@ -1,20 +1,41 @@
-"""Front-to-back alpha compositing of depth-sorted Gaussians per 16x16 tile, and its adjoint.
+"""Front-to-back alpha compositing of depth-sorted Gaussians per tile, and its adjoint.
 
-Pure Warp. One thread per pixel, 256 threads (one tile) per block (launch with block_dim=256).
-Both passes walk the tile's list in batches of 256 Gaussians; on CUDA the block loads each batch
-into shared memory together (``lanes.tile_batch``), on the CPU each pixel reads global memory. The
-backward pass is written by hand: it walks each pixel's list back to front from the last
-contributor the forward pass stored, recovering transmittance by division, sums each Gaussian's
-gradients over the warp in registers and lets one lane add them with atomics.
+Pure Warp. One thread per pixel, one TILE_SIZE x TILE_SIZE tile (BLOCK_SIZE = 256 threads) per
+block: launch with ``dim=tiles_x * tiles_y * BLOCK_SIZE`` and ``block_dim=BLOCK_SIZE``. The tiles'
+lists come from ``binning.bin_gaussians``: ``sorted_gauss_ids`` and ``tile_ranges``, a
+[tiles_y * tiles_x, 2] int32 array of [start, end) per tile (row-major tile numbers).
+
+Both passes walk the tile's list in batches of BLOCK_SIZE Gaussians; on CUDA the block loads each
+batch into shared memory together (``_lanes.tile_batch``), on the CPU each pixel reads global
+memory. The backward pass is written by hand: it walks each pixel's list back to front from the
+last contributor the forward pass stored, recovering transmittance by division, sums each
+Gaussian's gradients over the warp in registers and lets one lane add them with atomics.
 """
 
 import warp as wp
 
-from .lanes import (
-    BATCH_FIELDS, BATCH_LOAD, BATCH_STORE, block_count, block_max_int, block_sync, lane_any, lane_leads, lane_max,
-    lane_max_int, lane_sum, lane_sum_vec2, lane_sum_vec3, on_cuda, tile_batch, tile_ids,
+from ._constants import BLOCK_SIZE, TILE_SIZE
+from ._lanes import (
+    BATCH_FIELDS,
+    BATCH_LOAD,
+    BATCH_STORE,
+    block_count,
+    block_max_int,
+    block_sync,
+    lane_any,
+    lane_leads,
+    lane_max,
+    lane_max_int,
+    lane_sum,
+    lane_sum_vec2,
+    lane_sum_vec3,
+    on_cuda,
+    tile_batch,
+    tile_ids,
 )
 from .projection import ALPHA_THRESHOLD
+
+__all__ = ["blend_backward_kernel", "blend_backward_lean_kernel", "blend_forward_kernel", "complexity_kernel"]
 
 # CUDA: --use_fast_math (approximate exp and division, as gsplat builds its kernels; the CPU build
 # ignores it), and no grid-stride loop (one pixel per thread, fewer registers).
@@ -28,12 +49,12 @@ MIN_TRANSMITTANCE = wp.constant(1.0e-4)
 
 @wp.func
 def tile_pixel(tid: int, tiles_x: int):
-    """Pixel (x, y) and tile index of thread ``tid`` when each tile is a block of 256 threads."""
-    tile = tid // 256
-    local = tid - tile * 256
+    """Pixel (x, y) and tile index of thread ``tid`` when each tile is a block of BLOCK_SIZE threads."""
+    tile = tid // BLOCK_SIZE
+    local = tid - tile * BLOCK_SIZE
     tile_y = tile // tiles_x
     tile_x = tile - tile_y * tiles_x
-    return wp.vec3i(tile_x * 16 + local % 16, tile_y * 16 + local // 16, tile)
+    return wp.vec3i(tile_x * TILE_SIZE + local % TILE_SIZE, tile_y * TILE_SIZE + local // TILE_SIZE, tile)
 
 
 @wp.func
@@ -89,7 +110,7 @@ def batch_field(
     """``gaussian_field`` of the Gaussian in ``slot`` of the staged batch (CUDA), or of Gaussian ``g``
     read from global memory (CPU)."""
     if staged != 0:
-        return tile_batch(BATCH_LOAD, field * 256 + slot, wp.vec4())
+        return tile_batch(BATCH_LOAD, field * BLOCK_SIZE + slot, wp.vec4())
     return gaussian_field(field, g, means2d, conics, colors, opacities, depths)
 
 
@@ -106,7 +127,9 @@ def stage_gaussian(
     """Copy Gaussian ``g`` into ``slot`` of the block's shared batch (CUDA)."""
     tile_ids(BATCH_STORE, slot, g)
     for field in range(BATCH_FIELDS):
-        tile_batch(BATCH_STORE, field * 256 + slot, gaussian_field(field, g, means2d, conics, colors, opacities, depths))
+        tile_batch(
+            BATCH_STORE, field * BLOCK_SIZE + slot, gaussian_field(field, g, means2d, conics, colors, opacities, depths)
+        )
 
 
 @wp.func
@@ -135,14 +158,14 @@ def blend_forward_kernel(
 ):
     """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel.
 
-    The tile's list is walked in batches of 256. On CUDA the block's 256 threads (one tile) first
+    The tile's list is walked in batches of BLOCK_SIZE. On CUDA the block's threads (one tile) first
     load the batch into shared memory together, one Gaussian per thread, and every pixel then reads
     it from there; a pixel that turns opaque leaves the batch early and waits at the barrier, and
     the block stops when all its pixels are opaque. On the CPU each pixel reads global memory.
     """
     tid = wp.tid()
     pix = tile_pixel(tid, tiles_x)
-    local = tid % 256
+    local = tid % BLOCK_SIZE
     x = pix[0]
     y = pix[1]
     px = float(x) + 0.5
@@ -160,9 +183,9 @@ def blend_forward_kernel(
     last = start - 1
     batch = start
     while batch < end:
-        count = wp.min(256, end - batch)
+        count = wp.min(BLOCK_SIZE, end - batch)
         if staged != 0:
-            if block_count(done) >= 256:
+            if block_count(done) >= BLOCK_SIZE:
                 break
             if local < count:
                 stage_gaussian(local, sorted_gauss_ids[batch + local], means2d, conics, colors, opacities, depths)
@@ -190,7 +213,7 @@ def blend_forward_kernel(
             block_sync()  # the batch is read before the next one overwrites it
         elif done != 0:
             break
-        batch += 256
+        batch += BLOCK_SIZE
 
     if x < width and y < height:
         image_out[y, x] = color + transmittance * background[0]
@@ -204,8 +227,9 @@ def _blend_backward(sums: bool):
     (for a loss that does not use the depth and a strategy that does not read the sums: a sixth of
     its time on an H100 goes to their warp sums and atomics)."""
 
-    # 4 blocks of 256 per SM: at most 64 registers (what the kernel without sums needs; 48 spill).
-    @wp.kernel(enable_backward=False, launch_bounds=(256, 4))
+    # 4 blocks of BLOCK_SIZE (256) per SM: at most 64 registers (what the kernel without sums
+    # needs; 48 spill).
+    @wp.kernel(enable_backward=False, launch_bounds=(BLOCK_SIZE, 4))
     def blend_backward_kernel(
         tile_ranges: wp.array2d(dtype=wp.int32),
         sorted_gauss_ids: wp.array(dtype=wp.int32),
@@ -243,11 +267,11 @@ def _blend_backward(sums: bool):
         The 32 lanes of a warp (two rows of one tile) walk the tile's list together, from the last
         contributor of any of them down to the tile's start; a lane whose pixel the Gaussian does not
         touch adds zeros. Each Gaussian's gradients are summed over the warp in registers and one lane
-        adds them to global memory (``lanes``), so no lane may leave the loop early.
+        adds them to global memory (``_lanes``), so no lane may leave the loop early.
         """
         tid = wp.tid()
         pix = tile_pixel(tid, tiles_x)
-        local = tid % 256
+        local = tid % BLOCK_SIZE
         x = pix[0]
         y = pix[1]
         px = float(x) + 0.5
@@ -273,8 +297,8 @@ def _blend_backward(sums: bool):
 
         behind_color = wp.vec3(0.0, 0.0, 0.0)  # S: colour composited behind Gaussian i
         behind_depth = float(0.0)
-        # The list is walked back to front in batches of 256 from the last contributor of any pixel of
-        # the block (on CUDA each batch is loaded into shared memory together, as in the forward pass);
+        # The list is walked back to front in batches of BLOCK_SIZE from the last contributor of any
+        # pixel of the block (on CUDA each batch is loaded into shared memory together, as in the forward pass);
         # within a batch a warp starts at the last contributor of any of its lanes, so all its lanes
         # visit the same Gaussians (the collectives need that) and none visits one behind them all. On
         # the CPU every thread is its own warp and block: it starts at its own last contributor.
@@ -282,7 +306,7 @@ def _blend_backward(sums: bool):
         warp_last = lane_max_int(last)
         batch = block_max_int(warp_last)  # index of the batch's first (back-most) Gaussian
         while batch >= start:
-            count = wp.min(256, batch - start + 1)
+            count = wp.min(BLOCK_SIZE, batch - start + 1)
             if staged != 0:
                 if local < count:
                     stage_gaussian(local, sorted_gauss_ids[batch - local], means2d, conics, colors, opacities, depths)
@@ -318,14 +342,18 @@ def _blend_backward(sums: bool):
                     weight = alpha * t
                     d_color = weight * g_color
                     d_depth = weight * g_depth
-                    grad_alpha_i = wp.dot(t * c - front * behind_color, g_color) + (t * look[3] - front * behind_depth) * g_depth
+                    grad_alpha_i = (
+                        wp.dot(t * c - front * behind_color, g_color) + (t * look[3] - front * behind_depth) * g_depth
+                    )
                     grad_alpha_i += front * g_final
                     behind_color += weight * c
                     behind_depth += weight * look[3]
                     if raw_alpha < MAX_ALPHA:
                         d_opacity = gauss * grad_alpha_i
                         grad_power = raw_alpha * grad_alpha_i
-                        d_mean = grad_power * wp.vec2(-(shape[2] * dx + shape[3] * dy), -(extra[0] * dy + shape[3] * dx))
+                        d_mean = grad_power * wp.vec2(
+                            -(shape[2] * dx + shape[3] * dy), -(extra[0] * dy + shape[3] * dx)
+                        )
                         d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
                 d_abs = wp.vec2(wp.abs(d_mean[0]), wp.abs(d_mean[1]))
                 d_color = lane_sum_vec3(d_color)
@@ -348,7 +376,7 @@ def _blend_backward(sums: bool):
                         wp.atomic_add(absgrad_means2d_out, g, d_abs)
             if staged != 0:
                 block_sync()  # the batch is read before the next one overwrites it
-            batch -= 256
+            batch -= BLOCK_SIZE
 
     return blend_backward_kernel
 

@@ -16,10 +16,12 @@ Because the cells cover the whole ball of radius R and R bounds the k-th distanc
 exact for any distribution. Ties are broken by the smaller point index.
 """
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
+
+__all__ = ["MAX_K", "knn_search"]
 
 MAX_K = 16
 MORTON_BITS = wp.constant(21)
@@ -55,7 +57,7 @@ def bounds_kernel(
     points: wp.array(dtype=wp.vec3),
     chunk: int,
     bounds_out: wp.array(dtype=float),
-    non_finite_out: wp.array(dtype=wp.int32),
+    nonfinite_out: wp.array(dtype=wp.int32),
 ):
     """Bounding box (min xyz, max xyz in bounds_out[0:6]) and count of non-finite points, per chunk."""
     t = wp.tid()
@@ -74,7 +76,7 @@ def bounds_kernel(
         wp.atomic_min(bounds_out, a, lo[a])
         wp.atomic_max(bounds_out, a + 3, hi[a])
     if bad > 0:
-        wp.atomic_add(non_finite_out, 0, bad)
+        wp.atomic_add(nonfinite_out, 0, bad)
 
 
 @wp.func
@@ -125,7 +127,9 @@ def morton_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def gather_kernel(points: wp.array(dtype=wp.vec3), ids: wp.array(dtype=wp.int32), sorted_points_out: wp.array(dtype=wp.vec3)):
+def gather_kernel(
+    points: wp.array(dtype=wp.vec3), ids: wp.array(dtype=wp.int32), sorted_points_out: wp.array(dtype=wp.vec3)
+):
     """Points in Morton order, so that neighbours in space are neighbours in memory."""
     i = wp.tid()
     sorted_points_out[i] = points[ids[i]]
@@ -188,7 +192,7 @@ def axis_gap(q: float, cell: int, cells: int, size: float, origin: float, slack:
 
 
 @wp.kernel(enable_backward=False)
-def knn_search_kernel(
+def search_kernel(
     sorted_points: wp.array(dtype=wp.vec3),
     sorted_codes: wp.array(dtype=wp.int64),
     sorted_ids: wp.array(dtype=wp.int32),
@@ -251,7 +255,11 @@ def knn_search_kernel(
     stack_hi = stack_int()
     # The query's own cell goes on the stack last, so that it is visited first: the neighbours it
     # holds tighten the k-th distance early and let the other cells be skipped by their boxes.
-    own = pack_cell(fine_coord(q[0], bounds[0], scale) >> shift, fine_coord(q[1], bounds[1], scale) >> shift, fine_coord(q[2], bounds[2], scale) >> shift)
+    own = pack_cell(
+        fine_coord(q[0], bounds[0], scale) >> shift,
+        fine_coord(q[1], bounds[1], scale) >> shift,
+        fine_coord(q[2], bounds[2], scale) >> shift,
+    )
     top = int(0)
     for cz in range(c0z, c1z + 1):
         for cy in range(c0y, c1y + 1):
@@ -301,7 +309,9 @@ def knn_search_kernel(
             )
             for order in range(8):
                 child = order ^ 7 ^ own_child
-                stack_cell[top] = pack_cell(2 * cx + (child & 1), 2 * cy + ((child >> 1) & 1), 2 * cz + ((child >> 2) & 1))
+                stack_cell[top] = pack_cell(
+                    2 * cx + (child & 1), 2 * cy + ((child >> 1) & 1), 2 * cz + ((child >> 2) & 1)
+                )
                 stack_level[top] = cl + 1
                 stack_lo[top] = start
                 stack_hi[top] = end
@@ -329,7 +339,7 @@ def knn_search_kernel(
         index_out[i, j] = best_i[j]
 
 
-def knn(
+def knn_search(
     points: wp.array,
     k: int = 3,
     sqdist_out: wp.array | None = None,
@@ -364,13 +374,15 @@ def knn(
     device = points.device
     chunk = 256
     bounds = wp.array([3.0e38] * 3 + [-3.0e38] * 3, dtype=float, device=device)
-    non_finite = wp.zeros(1, dtype=wp.int32, device=device)
-    wp.launch(bounds_kernel, (n + chunk - 1) // chunk, inputs=[points, chunk], outputs=[bounds, non_finite], device=device)
-    bad = int(non_finite.numpy()[0])
+    nonfinite = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(
+        bounds_kernel, (n + chunk - 1) // chunk, inputs=[points, chunk], outputs=[bounds, nonfinite], device=device
+    )
+    bad = int(nonfinite.numpy()[0])
     if bad:
         raise ValueError(f"points has {bad} point(s) with NaN or infinite coordinates")
     if allocate is None:
-        allocate = lambda shape, dtype, dev: wp.empty(shape, dtype=dtype, device=dev)  # noqa: E731
+        allocate = lambda shape, dtype, dev: wp.empty(shape, dtype=dtype, device=dev)
     codes = allocate((2 * n,), wp.int64, device)  # radix_sort_pairs needs twice the count
     ids = allocate((2 * n,), wp.int32, device)
     wp.launch(morton_kernel, n, inputs=[points, bounds], outputs=[codes, ids], device=device)
@@ -382,7 +394,7 @@ def knn(
     if index_out is None:
         index_out = wp.empty((n, k), dtype=wp.int32, device=device)
     wp.launch(
-        knn_search_kernel,
+        search_kernel,
         n,
         inputs=[sorted_points, codes, ids, bounds, int(k)],
         outputs=[sqdist_out, index_out],

@@ -11,7 +11,18 @@ Tests check both against a float64 reference.
 
 import warp as wp
 
-from .lanes import group_read, group_sum_vec3
+from ._constants import MAX_SH_COEFFICIENTS, SH_C0, SH_C1, SH_C2, SH_C3
+from ._lanes import GROUP_SIZE, group_read
+
+__all__ = [
+    "ALPHA_THRESHOLD",
+    "Camera",
+    "make_camera",
+    "project_gaussians_kernel",
+    "sh_to_color_backward_kernel",
+    "sh_to_color_grouped_backward_kernel",
+    "sh_to_color_kernel",
+]
 
 # CUDA: --use_fast_math (approximate exp, division and square root, as gsplat builds its kernels);
 # the CPU build ignores the option.
@@ -26,8 +37,9 @@ FRUSTUM_CLAMP = wp.constant(1.3)
 # A footprint larger than this (px) is clamped before conversion to integers.
 MAX_RADIUS = wp.constant(1.0e8)
 
-SH_C0 = wp.constant(0.28209479177387814)
-SH_C1 = wp.constant(0.4886025119029199)
+# The SH constants of _constants.py one by one: Warp kernels read numbers, not tuples.
+SH_C2_0, SH_C2_1, SH_C2_2, SH_C2_3, SH_C2_4 = SH_C2
+SH_C3_0, SH_C3_1, SH_C3_2, SH_C3_3, SH_C3_4, SH_C3_5, SH_C3_6 = SH_C3
 
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
 
@@ -77,10 +89,16 @@ def quat_to_rotation(q: wp.vec4):
     y = n[2]
     z = n[3]
     return wp.mat33(
-        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
-    )  # fmt: skip
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - w * z),
+        2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y),
+        2.0 * (y * z + w * x),
+        1.0 - 2.0 * (x * x + y * y),
+    )
 
 
 @wp.func
@@ -156,9 +174,13 @@ def project_gaussians_kernel(
     tx = wp.clamp(p[0] * inv_z, -lim_left, lim_right) * p[2]
     ty = wp.clamp(p[1] * inv_z, -lim_top, lim_bottom) * p[2]
     jac = mat23(
-        camera.fx * inv_z, 0.0, -camera.fx * tx * inv_z * inv_z,
-        0.0, camera.fy * inv_z, -camera.fy * ty * inv_z * inv_z,
-    )  # fmt: skip
+        camera.fx * inv_z,
+        0.0,
+        -camera.fx * tx * inv_z * inv_z,
+        0.0,
+        camera.fy * inv_z,
+        -camera.fy * ty * inv_z * inv_z,
+    )
     cov2d = jac * cov_cam * wp.transpose(jac)
 
     a0 = cov2d[0, 0]
@@ -244,22 +266,22 @@ def sh_to_color_kernel(
             zz = z * z
             color = (
                 color
-                + 1.0925484305920792 * x * y * gauss_sh[i, 4]
-                - 1.0925484305920792 * y * z * gauss_sh[i, 5]
-                + 0.31539156525252005 * (2.0 * zz - xx - yy) * gauss_sh[i, 6]
-                - 1.0925484305920792 * x * z * gauss_sh[i, 7]
-                + 0.5462742152960396 * (xx - yy) * gauss_sh[i, 8]
+                + SH_C2_0 * x * y * gauss_sh[i, 4]
+                + SH_C2_1 * y * z * gauss_sh[i, 5]
+                + SH_C2_2 * (2.0 * zz - xx - yy) * gauss_sh[i, 6]
+                + SH_C2_3 * x * z * gauss_sh[i, 7]
+                + SH_C2_4 * (xx - yy) * gauss_sh[i, 8]
             )
             if sh_degree > 2:
                 color = (
                     color
-                    - 0.5900435899266435 * y * (3.0 * xx - yy) * gauss_sh[i, 9]
-                    + 2.890611442640554 * x * y * z * gauss_sh[i, 10]
-                    - 0.4570457994644658 * y * (4.0 * zz - xx - yy) * gauss_sh[i, 11]
-                    + 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * gauss_sh[i, 12]
-                    - 0.4570457994644658 * x * (4.0 * zz - xx - yy) * gauss_sh[i, 13]
-                    + 1.445305721320277 * z * (xx - yy) * gauss_sh[i, 14]
-                    - 0.5900435899266435 * x * (xx - 3.0 * yy) * gauss_sh[i, 15]
+                    + SH_C3_0 * y * (3.0 * xx - yy) * gauss_sh[i, 9]
+                    + SH_C3_1 * x * y * z * gauss_sh[i, 10]
+                    + SH_C3_2 * y * (4.0 * zz - xx - yy) * gauss_sh[i, 11]
+                    + SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * gauss_sh[i, 12]
+                    + SH_C3_4 * x * (4.0 * zz - xx - yy) * gauss_sh[i, 13]
+                    + SH_C3_5 * z * (xx - yy) * gauss_sh[i, 14]
+                    + SH_C3_6 * x * (xx - 3.0 * yy) * gauss_sh[i, 15]
                 )
     color = color + wp.vec3(0.5, 0.5, 0.5)
     if nonfinite_out.shape[0] > 0:
@@ -268,12 +290,15 @@ def sh_to_color_kernel(
     colors_out[i] = wp.vec3(wp.max(color[0], 0.0), wp.max(color[1], 0.0), wp.max(color[2], 0.0))
 
 
-vec16 = wp.types.vector(length=16, dtype=wp.float32)
+# One float per SH coefficient of degree <= 3.
+sh_vector = wp.types.vector(length=MAX_SH_COEFFICIENTS, dtype=wp.float32)
+# The grouped SH adjoint runs one lane per coefficient in a group of lanes that shuffle together.
+assert MAX_SH_COEFFICIENTS == GROUP_SIZE, "sh_to_color_grouped_backward_kernel needs one lane group per Gaussian"
 
 
 @wp.func
 def sh_basis(d: wp.vec3, degree: int):
-    """The 16 real SH basis functions (3DGS signs) at unit direction ``d``; 0 above ``degree``."""
+    """The real SH basis functions of degree <= 3 (3DGS signs) at unit direction ``d``; 0 above ``degree``."""
     x = d[0]
     y = d[1]
     z = d[2]
@@ -283,37 +308,38 @@ def sh_basis(d: wp.vec3, degree: int):
     m1 = wp.where(degree > 0, 1.0, 0.0)
     m2 = wp.where(degree > 1, 1.0, 0.0)
     m3 = wp.where(degree > 2, 1.0, 0.0)
-    return vec16(
+    return sh_vector(
         SH_C0,
         -m1 * SH_C1 * y,
         m1 * SH_C1 * z,
         -m1 * SH_C1 * x,
-        m2 * 1.0925484305920792 * x * y,
-        -m2 * 1.0925484305920792 * y * z,
-        m2 * 0.31539156525252005 * (2.0 * zz - xx - yy),
-        -m2 * 1.0925484305920792 * x * z,
-        m2 * 0.5462742152960396 * (xx - yy),
-        -m3 * 0.5900435899266435 * y * (3.0 * xx - yy),
-        m3 * 2.890611442640554 * x * y * z,
-        -m3 * 0.4570457994644658 * y * (4.0 * zz - xx - yy),
-        m3 * 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-        -m3 * 0.4570457994644658 * x * (4.0 * zz - xx - yy),
-        m3 * 1.445305721320277 * z * (xx - yy),
-        -m3 * 0.5900435899266435 * x * (xx - 3.0 * yy),
+        m2 * SH_C2_0 * x * y,
+        m2 * SH_C2_1 * y * z,
+        m2 * SH_C2_2 * (2.0 * zz - xx - yy),
+        m2 * SH_C2_3 * x * z,
+        m2 * SH_C2_4 * (xx - yy),
+        m3 * SH_C3_0 * y * (3.0 * xx - yy),
+        m3 * SH_C3_1 * x * y * z,
+        m3 * SH_C3_2 * y * (4.0 * zz - xx - yy),
+        m3 * SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+        m3 * SH_C3_4 * x * (4.0 * zz - xx - yy),
+        m3 * SH_C3_5 * z * (xx - yy),
+        m3 * SH_C3_6 * x * (xx - 3.0 * yy),
     )
 
 
 @wp.func
-def sh_basis_vjp(d: wp.vec3, w: vec16, degree: int):
+def sh_basis_vjp(d: wp.vec3, w: sh_vector, degree: int):
     """sum_j w[j] * d(basis_j)/d(d), the basis differentiated in x, y, z as independent variables."""
     x = d[0]
     y = d[1]
     z = d[2]
     g = wp.vec3(-SH_C1 * w[3], -SH_C1 * w[1], SH_C1 * w[2])
     if degree > 1:
-        c20 = 1.0925484305920792
-        c22 = 0.31539156525252005
-        c24 = 0.5462742152960396
+        # magnitudes; the signs of SH_C2 and SH_C3 are written into the expressions below
+        c20 = SH_C2_0
+        c22 = SH_C2_2
+        c24 = SH_C2_4
         g += wp.vec3(
             c20 * (y * w[4] - z * w[7]) + 2.0 * x * (c24 * w[8] - c22 * w[6]),
             c20 * (x * w[4] - z * w[5]) - 2.0 * y * (c22 * w[6] + c24 * w[8]),
@@ -323,26 +349,43 @@ def sh_basis_vjp(d: wp.vec3, w: vec16, degree: int):
             xx = x * x
             yy = y * y
             zz = z * z
-            c30 = 0.5900435899266435
-            c31 = 2.890611442640554
-            c32 = 0.4570457994644658
-            c33 = 0.3731763325901154
-            c35 = 1.445305721320277
+            c30 = -SH_C3_0
+            c31 = SH_C3_1
+            c32 = -SH_C3_2
+            c33 = SH_C3_3
+            c35 = SH_C3_5
             g += wp.vec3(
-                -6.0 * c30 * x * y * w[9] + c31 * y * z * w[10] + 2.0 * c32 * x * y * w[11] - 6.0 * c33 * x * z * w[12]
-                - c32 * (4.0 * zz - 3.0 * xx - yy) * w[13] + 2.0 * c35 * x * z * w[14] - 3.0 * c30 * (xx - yy) * w[15],
-                -3.0 * c30 * (xx - yy) * w[9] + c31 * x * z * w[10] - c32 * (4.0 * zz - xx - 3.0 * yy) * w[11]
-                - 6.0 * c33 * y * z * w[12] + 2.0 * c32 * x * y * w[13] - 2.0 * c35 * y * z * w[14] + 6.0 * c30 * x * y * w[15],
-                c31 * x * y * w[10] - 8.0 * c32 * y * z * w[11] + 3.0 * c33 * (2.0 * zz - xx - yy) * w[12]
-                - 8.0 * c32 * x * z * w[13] + c35 * (xx - yy) * w[14],
-            )  # fmt: skip
+                -6.0 * c30 * x * y * w[9]
+                + c31 * y * z * w[10]
+                + 2.0 * c32 * x * y * w[11]
+                - 6.0 * c33 * x * z * w[12]
+                - c32 * (4.0 * zz - 3.0 * xx - yy) * w[13]
+                + 2.0 * c35 * x * z * w[14]
+                - 3.0 * c30 * (xx - yy) * w[15],
+                -3.0 * c30 * (xx - yy) * w[9]
+                + c31 * x * z * w[10]
+                - c32 * (4.0 * zz - xx - 3.0 * yy) * w[11]
+                - 6.0 * c33 * y * z * w[12]
+                + 2.0 * c32 * x * y * w[13]
+                - 2.0 * c35 * y * z * w[14]
+                + 6.0 * c30 * x * y * w[15],
+                c31 * x * y * w[10]
+                - 8.0 * c32 * y * z * w[11]
+                + 3.0 * c33 * (2.0 * zz - xx - yy) * w[12]
+                - 8.0 * c32 * x * z * w[13]
+                + c35 * (xx - yy) * w[14],
+            )
     return g
 
 
 @wp.func
 def clamp_gradient(color: wp.vec3, grad: wp.vec3):
     """The gradient through colour = max(raw, 0): it passes where the colour is positive (raw > 0)."""
-    return wp.vec3(wp.where(color[0] > 0.0, grad[0], 0.0), wp.where(color[1] > 0.0, grad[1], 0.0), wp.where(color[2] > 0.0, grad[2], 0.0))
+    return wp.vec3(
+        wp.where(color[0] > 0.0, grad[0], 0.0),
+        wp.where(color[1] > 0.0, grad[1], 0.0),
+        wp.where(color[2] > 0.0, grad[2], 0.0),
+    )
 
 
 @wp.kernel(enable_backward=False)
@@ -374,16 +417,16 @@ def sh_to_color_backward_kernel(
     basis = sh_basis(d, sh_degree)
     count = (sh_degree + 1) * (sh_degree + 1)
     g = clamp_gradient(colors[i], grad_colors[i])
-    # Loops over a constant 16 are unrolled, so every vector index is a constant and the vectors
-    # stay in registers (runtime bounds put them in local memory, three times slower).
-    w = vec16()
-    for j in range(16):
+    # Loops over a constant count (16) are unrolled, so every vector index is a constant and the
+    # vectors stay in registers (runtime bounds put them in local memory, three times slower).
+    w = sh_vector()
+    for j in range(MAX_SH_COEFFICIENTS):
         if j < count:
             grad_sh_out[i, j] = basis[j] * g
             w[j] = wp.dot(gauss_sh[i, j], g)
         elif j < stored:
             grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
-    for j in range(16, stored):
+    for j in range(MAX_SH_COEFFICIENTS, stored):
         grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
     grad_mean = wp.vec3(0.0, 0.0, 0.0)
     if sh_degree > 0:
@@ -394,18 +437,19 @@ def sh_to_color_backward_kernel(
 
 
 # ------------------------------------------------------------------------------------------------
-# The SH adjoint for CUDA, 16 threads per Gaussian: thread j of a Gaussian's half warp reads and
-# writes its coefficient j, so a warp touches 384 contiguous bytes per access instead of 32 rows
-# 192 bytes apart, and the half warp sums in registers (``lanes.group_*``). Launch with dim = 16 N.
-# CUDA only (on the CPU the per-Gaussian kernel above runs). The forward pass, which only reads the
-# coefficients, measured faster with one thread per Gaussian (the basis computed once, not 16 times).
+# The SH adjoint for CUDA, MAX_SH_COEFFICIENTS (16) threads per Gaussian: thread j of a Gaussian's
+# half warp reads and writes its coefficient j, so a warp touches 384 contiguous bytes per access
+# instead of 32 rows 192 bytes apart, and the half warp exchanges values in registers
+# (``_lanes.group_read``). Launch with dim = MAX_SH_COEFFICIENTS * N. CUDA only (on the CPU the
+# per-Gaussian kernel above runs). The forward pass, which only reads the coefficients, measured
+# faster with one thread per Gaussian (the basis computed once, not 16 times).
 
 
 @wp.func
-def pick16(v: vec16, j: int):
+def pick_sh(v: sh_vector, j: int):
     """``v[j]`` by 16 selects: indexing with a runtime ``j`` would put ``v`` in local memory."""
     r = v[0]
-    for k in range(1, 16):
+    for k in range(1, MAX_SH_COEFFICIENTS):
         r = wp.where(j == k, v[k], r)
     return r
 
@@ -422,15 +466,15 @@ def sh_to_color_grouped_backward_kernel(
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
 ):
-    """``sh_to_color_backward_kernel`` with one thread per coefficient (dim 16 N, CUDA only)."""
+    """``sh_to_color_backward_kernel`` with one thread per coefficient (dim MAX_SH_COEFFICIENTS * N = 16 N, CUDA only)."""
     t = wp.tid()
-    i = t // 16
-    j = t - i * 16
+    i = t // MAX_SH_COEFFICIENTS
+    j = t - i * MAX_SH_COEFFICIENTS
     stored = gauss_sh.shape[1]
     zero = wp.vec3(0.0, 0.0, 0.0)
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:  # the whole half warp leaves together
-            for k in range(j, stored, 16):
+            for k in range(j, stored, MAX_SH_COEFFICIENTS):
                 grad_sh_out[i, k] = zero
             if j == 0:
                 grad_means_out[i] = zero
@@ -438,19 +482,19 @@ def sh_to_color_grouped_backward_kernel(
     count = (sh_degree + 1) * (sh_degree + 1)
     v = gauss_means[i] - camera_center
     d = wp.normalize(v)
-    b = pick16(sh_basis(d, sh_degree), j)
+    b = pick_sh(sh_basis(d, sh_degree), j)
     coefficient = zero
     if j < count:
         coefficient = gauss_sh[i, j]
     g = clamp_gradient(colors[i], grad_colors[i])
     if j < stored:
         grad_sh_out[i, j] = wp.where(j < count, b * g, zero)
-    for k in range(j + 16, stored, 16):
+    for k in range(j + MAX_SH_COEFFICIENTS, stored, MAX_SH_COEFFICIENTS):
         grad_sh_out[i, k] = zero
-    # every lane gathers the 16 weights dot(coefficient, g); lane 0 writes the mean's gradient
+    # every lane gathers the group's weights dot(coefficient, g); lane 0 writes the mean's gradient
     w_j = wp.dot(coefficient, g)
-    w = vec16()
-    for k in range(16):
+    w = sh_vector()
+    for k in range(MAX_SH_COEFFICIENTS):
         w[k] = group_read(w_j, k)
     if j == 0:
         grad_mean = zero

@@ -1,10 +1,26 @@
-"""Training: configuration, the Gaussian model and its optimizer, densification strategies
-(ADC / 3DGS, CDC-GS), the loop, evaluation."""
+"""Training: configuration, the Gaussian model, parameter surgery, densification strategies
+(3DGS's ADC and CDC-GS, as named presets), the loop, evaluation and the run folder."""
 
 from .cdc import CDC
-from .config import DataConfig, TrainConfig
-from .model import GaussianModel, LearningRates
-from .strategy import ADC, make_strategy
+from .config import DataConfig, LearningRates, TrainConfig
+from .model import GaussianModel
+from .outputs import Run, load_run
+from .presets import PRESETS
+from .strategy import ADC, StepContext, Strategy
 from .trainer import Trainer, TrainingDiverged
 
-__all__ = ["ADC", "CDC", "DataConfig", "GaussianModel", "LearningRates", "TrainConfig", "Trainer", "TrainingDiverged", "make_strategy"]
+__all__ = [
+    "ADC",
+    "CDC",
+    "PRESETS",
+    "DataConfig",
+    "GaussianModel",
+    "LearningRates",
+    "Run",
+    "StepContext",
+    "Strategy",
+    "TrainConfig",
+    "Trainer",
+    "TrainingDiverged",
+    "load_run",
+]

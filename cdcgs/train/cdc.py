@@ -12,30 +12,39 @@ z-scores multiply into a consistency score s = z(Gamma) z(Psi):
 
 CAAT lowers the gradient threshold of complex Gaussians; the periodic prune (every 3000 steps,
 opacity < 0.1) replaces the per-step 3DGS pruning, as in the authors' code. Every variant of the
-paper is a configuration of this one class (see ``PRESETS``); ../CDC-GS.md has the details and
-where we deviate from the authors' code.
+paper, and the 3DGS baseline, is a configuration of this one class (:mod:`cdcgs.train.presets`,
+:meth:`CDC.from_preset`); docs/cdc-gs.md has the details.
 """
 
 from __future__ import annotations
 
 import math
-import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
-from ..complexity import METHODS, complexity_map, gaussian_complexity
+from ..complexity import AGGREGATIONS, METHODS, ViewComplexity, complexity_over_views
+from ..errors import OptionError
 from ..neighbors import density
-from .strategy import ADC, StepContext
+from .presets import PRESETS, canonical_name
+from .strategy import ADC, StepContext, strategy_option
+
+__all__ = ["CDC", "caat_threshold", "draw", "pearson", "quantile_score", "zscore"]
 
 
 def zscore(x: torch.Tensor) -> torch.Tensor:
     return (x - x.mean()) / (x.std() + 1e-6)
 
 
-def quantile_score(x: torch.Tensor, q: float) -> torch.Tensor:
-    """Like the z-score, centred on the q-quantile instead of the mean (CDC-GS's compact variant)."""
-    sample = x if x.numel() <= 1_000_000 else x[torch.randperm(x.numel(), device=x.device)[:1_000_000]]
+def quantile_score(x: torch.Tensor, q: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Like the z-score, centred on the q-quantile instead of the mean (CDC-GS's compact variant).
+
+    Above a million values the quantile is estimated from a million drawn with ``generator``
+    (torch.quantile's limit)."""
+    if x.numel() <= 1_000_000:
+        sample = x
+    else:
+        sample = x[torch.randperm(x.numel(), device=x.device, generator=generator)[:1_000_000]]
     return (x - torch.quantile(sample.float(), q)) / (x.std() + 1e-6)
 
 
@@ -69,51 +78,89 @@ def draw(weights: torch.Tensor, count: int, generator: torch.Generator) -> torch
 class CDC(ADC):
     """ADC plus complexity-density consistency (the options are the paper's ablation axes)."""
 
-    cdc_densify: bool = True  # draw complex-but-sparse Gaussians into densification
-    cdc_prune: bool = True  # draw flat-but-crowded Gaussians for removal
-    rho_densify: float = 0.01
-    rho_prune: float = 0.01
-    reverse: bool = False  # sanity ablation: densify the flat-crowded, prune the complex-sparse
-    centre: str = "mean"  # z-score centres: "mean", or "quantile" (compact variant)
-    complexity_quantile: float = 0.75
-    density_quantile: float = 0.25
-    caat: bool = True  # complexity-aware adaptive gradient threshold
-    tau_low: float = 1.5e-4
-    tau_up: float = 2e-4
-    caat_lambda: float = 6.0
-    periodic_prune: bool = True  # every periodic_prune_every steps remove opacity < periodic_prune_opacity
-    periodic_prune_every: int = 3000
-    periodic_prune_opacity: float = 0.1
-    complexity_schedule: str = "full"  # "full": render every training view per step; "online": the training renders
-    pixel_aggregation: str = "max"  # within a view: "max" or "mean" over pixels
-    view_aggregation: str = "max"  # across views: "max" or "mean"
-    complexity_method: str = "dwt"  # dwt, dwt2, sobel, scharr, laplacian
-    neighbours: int = 3
-    log_correlation: bool = True  # Pearson(Gamma, Psi) at every densification step
-    save_maps: int = 4  # complexity maps of the first n training views saved as PNGs
+    cdc_densify: bool = strategy_option(
+        True, "draw complex-but-sparse Gaussians into densification (consistency densification)"
+    )
+    cdc_prune: bool = strategy_option(True, "draw flat-but-crowded Gaussians for removal (consistency pruning)")
+    rho_densify: float = strategy_option(0.01, "consistency densification draws this fraction of N")
+    rho_prune: float = strategy_option(0.01, "consistency pruning draws this fraction of N")
+    reverse: bool = strategy_option(False, "sanity ablation: densify the flat-crowded, prune the complex-sparse")
+    centre: str = strategy_option(
+        "mean",
+        "centres of the Γ and Ψ scores: mean (z-scores) or quantile (compact variant)",
+        choices=("mean", "quantile"),
+    )
+    complexity_quantile: float = strategy_option(
+        0.75, "with --centre quantile: the quantile of Γ that centres its score"
+    )
+    density_quantile: float = strategy_option(0.25, "with --centre quantile: the quantile of Ψ that centres its score")
+    caat: bool = strategy_option(
+        True, "CAAT: complexity-aware adaptive gradient threshold between --tau-low and --tau-up"
+    )
+    tau_low: float = strategy_option(1.5e-4, "CAAT: threshold of the most complex Gaussians")
+    tau_up: float = strategy_option(2e-4, "CAAT: threshold of the flattest Gaussians")
+    caat_lambda: float = strategy_option(6.0, "CAAT: steepness λ of the sigmoid in Γ")
+    periodic_prune: bool = strategy_option(
+        True,
+        "every --periodic-prune-every steps remove Gaussians below --periodic-prune-opacity (replaces per-step pruning)",
+    )
+    periodic_prune_every: int = strategy_option(3000, "iterations between periodic prunes")
+    periodic_prune_opacity: float = strategy_option(0.1, "the periodic prune removes Gaussians less opaque than this")
+    complexity_schedule: str = strategy_option(
+        "full",
+        "full: Γ over every training view at each densification step (as the paper); online: from the training renders since the last step",
+        choices=("full", "online"),
+    )
+    pixel_aggregation: str = strategy_option(
+        "max", "Γ within a view: max or mean over the pixels a Gaussian composites", choices=AGGREGATIONS
+    )
+    view_aggregation: str = strategy_option(
+        "max", "Γ across views: max, or mean over the views that see the Gaussian", choices=AGGREGATIONS
+    )
+    complexity_method: str = strategy_option(
+        "dwt", "high-frequency map: Haar DWT (1 or 2 levels) or an edge filter", choices=METHODS
+    )
+    neighbours: int = strategy_option(3, "nearest neighbours of the density Ψ (and of the initial scales' rule)")
+    log_correlation: bool = strategy_option(True, "log Pearson r(Γ, Ψ) at every densification step (correlation.png)")
 
     def __post_init__(self):
         super().__post_init__()
-        checks = {
-            "centre": ("mean", "quantile"),
-            "complexity_schedule": ("full", "online"),
-            "pixel_aggregation": ("max", "mean"),
-            "view_aggregation": ("max", "mean"),
-            "complexity_method": METHODS,
-        }
-        for name, allowed in checks.items():
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        for f in fields(self):
+            allowed = f.metadata.get("choices")
+            if allowed is not None and getattr(self, f.name) not in allowed:
+                raise OptionError(f"{f.name} must be one of {', '.join(allowed)}, got {getattr(self, f.name)!r}")
         for name in ("rho_densify", "rho_prune"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+                raise OptionError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not 1 <= self.neighbours <= 16:
-            raise ValueError(f"neighbours must be in 1..16, got {self.neighbours}")
-        self._maps = None
+            raise OptionError(f"neighbours must be in 1..16, got {self.neighbours}")
+
+    @classmethod
+    def from_preset(cls, name: str, options: dict | None = None) -> CDC:
+        """The named preset (:data:`cdcgs.train.presets.PRESETS`, aliases accepted) with
+        ``options`` overriding its hyperparameters.
+
+        Raises:
+            ValueError: an unknown preset or option name, or a value the strategy refuses.
+        """
+        preset = PRESETS[canonical_name(name)]
+        options = dict(options or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise OptionError(f"strategy {name!r} has no option(s) {unknown}; it has {sorted(known)}")
+        return cls(**{**preset, **options})
 
     @property
     def needs_complexity(self) -> bool:
         return self.cdc_densify or self.cdc_prune or self.caat or self.log_correlation
+
+    @property
+    def complexity_maps_method(self) -> str | None:
+        return self.complexity_method if self.needs_complexity else None
+
+    def _aggregation(self) -> dict:
+        return {"pixel_aggregation": self.pixel_aggregation, "view_aggregation": self.view_aggregation}
 
     def initialize_state(self, model) -> dict:
         state = super().initialize_state(model)
@@ -122,51 +169,21 @@ class CDC(ADC):
             state["gamma_views"] = torch.zeros(model.num, device=model.device)
         return state
 
-    # --- complexity ---------------------------------------------------------------------------
-
-    def maps(self, ctx: StepContext) -> list[torch.Tensor]:
-        """Complexity maps of the training views, computed once (uint8, on the images' device)."""
-        if self._maps is None:
-            self._maps = [complexity_map(view.image, self.complexity_method) for view in ctx.views]
-            if ctx.out_dir and self.save_maps:
-                from PIL import Image
-
-                folder = os.path.join(ctx.out_dir, "complexity_maps")
-                os.makedirs(folder, exist_ok=True)
-                for view, m in list(zip(ctx.views, self._maps))[: self.save_maps]:
-                    stem = os.path.splitext(view.name.replace(os.sep, "_"))[0]
-                    Image.fromarray(m.cpu().numpy()).save(os.path.join(folder, f"{stem}.png"))
-        return self._maps
-
-    def _add_view(self, gamma: torch.Tensor, views_seen: torch.Tensor, info, hf_map) -> None:
-        max_out, sum_out, count = gaussian_complexity(info, hf_map)
-        per_view = max_out if self.pixel_aggregation == "max" else sum_out / count.clamp_min(1)
-        if self.view_aggregation == "max":
-            torch.maximum(gamma, per_view, out=gamma)
-        else:
-            gamma += per_view
-            views_seen += (count > 0).float()
-
     def complexity(self, ctx: StepContext, state: dict) -> torch.Tensor:
-        """[N] Gamma of every Gaussian for this densification step."""
+        """[N] Γ of every Gaussian for this densification step."""
         if self.complexity_schedule == "online":
-            gamma, views_seen = state["gamma"], state["gamma_views"]
-        else:
-            maps = self.maps(ctx)
-            gamma = torch.zeros(ctx.model.num, device=ctx.model.device)
-            views_seen = torch.zeros_like(gamma)
-            with torch.no_grad():
-                for index in range(len(ctx.views)):
-                    _, _, info = ctx.render(index)
-                    self._add_view(gamma, views_seen, info, maps[index])
-        return gamma if self.view_aggregation == "max" else gamma / views_seen.clamp_min(1)
+            return ViewComplexity.from_state(state["gamma"], state["gamma_views"], **self._aggregation()).result()
+        return complexity_over_views(
+            ctx.render, ctx.complexity_maps, ctx.model.num, ctx.model.device, **self._aggregation()
+        )
 
     # --- hooks --------------------------------------------------------------------------------
 
     def after_backward(self, ctx: StepContext, state: dict) -> dict:
         if self.needs_complexity and self.complexity_schedule == "online" and ctx.step <= self.densify_until:
             with torch.no_grad():
-                self._add_view(state["gamma"], state["gamma_views"], ctx.info, self.maps(ctx)[ctx.view_index])
+                accumulator = ViewComplexity.from_state(state["gamma"], state["gamma_views"], **self._aggregation())
+                accumulator.add(ctx.info, ctx.complexity_maps[ctx.view_index])
         return super().after_backward(ctx, state)
 
     def densify_and_prune(self, ctx: StepContext, state: dict) -> dict:
@@ -180,26 +197,45 @@ class CDC(ADC):
             psi = density(model.params["means"].detach(), self.neighbours)
             if self.log_correlation:
                 log["correlation"] = pearson(gamma, psi)
-            threshold = caat_threshold(gamma, self.tau_low, self.tau_up, self.caat_lambda) if self.caat else self.grad_threshold
+            threshold = (
+                caat_threshold(gamma, self.tau_low, self.tau_up, self.caat_lambda) if self.caat else self.grad_threshold
+            )
             selected_by_gradient = mean_grad >= threshold
             if self.cdc_densify or self.cdc_prune:
                 if self.centre == "mean":
                     z_gamma, z_psi = zscore(gamma), zscore(psi)
                 else:
-                    z_gamma, z_psi = quantile_score(gamma, self.complexity_quantile), quantile_score(psi, self.density_quantile)
+                    z_gamma, z_psi = (
+                        quantile_score(gamma, self.complexity_quantile, ctx.generator),
+                        quantile_score(psi, self.density_quantile, ctx.generator),
+                    )
                 s = z_gamma * z_psi
                 complex_sparse = (s < 0) & (z_gamma > 0)
                 flat_crowded = (s < 0) & (z_gamma < 0)
-                densify_pool, prune_pool = (flat_crowded, complex_sparse) if self.reverse else (complex_sparse, flat_crowded)
+                densify_pool, prune_pool = (
+                    (flat_crowded, complex_sparse) if self.reverse else (complex_sparse, flat_crowded)
+                )
                 n = model.num
-                log.update(gaussians_before=n, densify_candidates=int(densify_pool.sum()), prune_candidates=int(prune_pool.sum()))
+                log.update(
+                    gaussians_before=n,
+                    densify_candidates=int(densify_pool.sum()),
+                    prune_candidates=int(prune_pool.sum()),
+                )
                 if self.cdc_densify:
-                    drawn = draw(torch.where(densify_pool, s.abs(), torch.zeros_like(s)), math.floor(self.rho_densify * n), ctx.generator)
+                    drawn = draw(
+                        torch.where(densify_pool, s.abs(), torch.zeros_like(s)),
+                        math.floor(self.rho_densify * n),
+                        ctx.generator,
+                    )
                     log["cdc_densify"] = int(drawn.sum())
                     selected_by_gradient |= drawn
                 if self.cdc_prune:
                     keep_weight = (1.0 - model.opacities().detach()).clamp_min(1e-12)
-                    prune_extra = draw(torch.where(prune_pool, keep_weight, torch.zeros_like(keep_weight)), math.floor(self.rho_prune * n), ctx.generator)
+                    prune_extra = draw(
+                        torch.where(prune_pool, keep_weight, torch.zeros_like(keep_weight)),
+                        math.floor(self.rho_prune * n),
+                        ctx.generator,
+                    )
                     log["cdc_prune"] = int(prune_extra.sum())
         else:
             selected_by_gradient = mean_grad >= self.grad_threshold
@@ -216,16 +252,3 @@ class CDC(ADC):
             # The authors' code replaces the per-step 3DGS pruning by the periodic prune.
             return torch.zeros(ctx.model.num, dtype=torch.bool, device=ctx.model.device)
         return super().prune_mask(ctx, max_radius)
-
-
-# Every row of the CDC-GS.md variants table except MCMC.
-PRESETS: dict[str, dict] = {
-    "3dgs": dict(cdc_densify=False, cdc_prune=False, caat=False, periodic_prune=False, log_correlation=False, complexity_schedule="online"),
-    "cdc": {},
-    "cdc-hq": dict(rho_densify=0.02),
-    "caat-only": dict(cdc_densify=False, cdc_prune=False, periodic_prune=False),
-    "cdc-only": dict(caat=False),
-    "cdc-prune-only": dict(cdc_densify=False, caat=False),
-    "cdc-reverse": dict(reverse=True),
-    "cdc-compact": dict(centre="quantile", rho_prune=0.5),
-}

@@ -8,35 +8,35 @@ import time
 import numpy as np
 import torch
 
-from ..render import rasterize
+from ..render import prepare_camera, rasterize
 from .loss import psnr, ssim
+from .outputs import view_stem
 
-_LPIPS: dict = {}
+__all__ = ["error_triptych", "evaluate", "lpips_metric", "render_view"]
 
 
 def lpips_metric(device: torch.device):
-    """An LPIPS (VGG) callable on [B, 3, H, W] images in [0, 1], or (None, reason) when unavailable.
+    """(callable, None) computing LPIPS (VGG) of [B, 3, H, W] images in [0, 1], or (None, reason)
+    when it is unavailable. Build it once per run and pass it to :func:`evaluate`.
 
     LPIPS needs pretrained network weights; where they cannot be loaded (no ``lpips`` package, no
     network to fetch them), it is reported as unavailable, never estimated.
     """
-    key = str(device)
-    if key not in _LPIPS:
-        try:
-            import lpips
+    try:
+        import lpips
 
-            net = lpips.LPIPS(net="vgg", verbose=False).to(device).eval()
-            _LPIPS[key] = (lambda a, b: net(a * 2 - 1, b * 2 - 1).flatten(), None)
-        except Exception as err:  # missing package or weights that cannot be downloaded
-            _LPIPS[key] = (None, f"unavailable: {type(err).__name__}: {str(err)[:160]}")
-    return _LPIPS[key]
+        net = lpips.LPIPS(net="vgg", verbose=False).to(device).eval()
+        return (lambda a, b: net(a * 2 - 1, b * 2 - 1).flatten()), None
+    except Exception as err:  # missing package or weights that cannot be downloaded
+        return None, f"unavailable: {type(err).__name__}: {str(err)[:160]}"
 
 
-def render_view(model, view, background: torch.Tensor, antialiased: bool = False):
-    return rasterize(
-        **model.render_args(), viewmat=view.viewmat, K=view.K, width=view.width, height=view.height,
-        background=background, antialiased=antialiased,
-    )  # fmt: skip
+def render_view(model, view, background: torch.Tensor, antialiased: bool = False, camera=None):
+    """(image, alpha, info) of ``model`` seen from ``view`` (``camera``: its PreparedCamera, if
+    the caller keeps one)."""
+    if camera is None:
+        camera = prepare_camera(view.viewmat, view.K, view.width, view.height)
+    return rasterize(**model.render_args(), camera=camera, background=background, antialiased=antialiased)
 
 
 def error_triptych(gt: torch.Tensor, image: torch.Tensor) -> np.ndarray:
@@ -49,17 +49,31 @@ def error_triptych(gt: torch.Tensor, image: torch.Tensor) -> np.ndarray:
 
 @torch.no_grad()
 def evaluate(
-    model, views, *, background: torch.Tensor, antialiased: bool = False, save_dir: str | None = None, render=render_view
+    model,
+    views,
+    *,
+    background: torch.Tensor,
+    antialiased: bool = False,
+    save_dir: str | None = None,
+    render=None,
+    lpips: tuple | None = None,
 ) -> dict:
     """Metrics over ``views`` (means over views) and, with ``save_dir``, one triptych PNG per view.
 
     ``render(model, view, background, antialiased) -> (image, alpha, info)`` draws a view (cdcgs's
-    rasterizer by default; the benchmarks pass a peer's to score it the same way).
+    rasterizer by default, each view's camera prepared once; the benchmarks pass a peer's to score
+    it the same way). ``lpips``: what :func:`lpips_metric` returned (built here when not given).
     """
     if not views:
         return {"views": 0}
+    if render is None:
+        cameras = {id(view): prepare_camera(view.viewmat, view.K, view.width, view.height) for view in views}
+
+        def render(model, view, background, antialiased):
+            return render_view(model, view, background, antialiased, camera=cameras[id(view)])
+
     device = model.device
-    lpips_fn, lpips_reason = lpips_metric(device)
+    lpips_fn, lpips_reason = lpips if lpips is not None else lpips_metric(device)
     per_view = []
     if save_dir:
         os.makedirs(save_dir, exist_ok=True)
@@ -73,8 +87,7 @@ def evaluate(
         if save_dir:
             from PIL import Image
 
-            stem = os.path.splitext(view.name.replace(os.sep, "_"))[0]
-            Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, f"{stem}.png"))
+            Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, f"{view_stem(view.name)}.png"))
     # Render speed: every view once more, timed after the first pass warmed everything up.
     if device.type == "cuda":
         torch.cuda.synchronize(device)

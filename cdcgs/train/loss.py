@@ -3,6 +3,8 @@
 import kornia
 import torch
 
+__all__ = ["photometric_loss", "psnr", "ssim"]
+
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean SSIM with kornia's 11 px Gaussian window (sigma 1.5)."""

@@ -1,30 +1,45 @@
-"""Densification strategies: how the set of Gaussians grows and shrinks during training.
+"""Densification strategies: the hooks every strategy offers, what they may touch, and 3DGS's
+adaptive density control (:class:`ADC`), on which CDC-GS (:mod:`cdcgs.train.cdc`) builds.
 
-A strategy is a dataclass of hyperparameters. The trainer owns its state (``initialize_state``)
-and calls the same two hooks on every strategy, so it never asks which one it has:
-
-- ``before_backward(ctx, state)``: after the render, before ``loss.backward()``.
-- ``after_backward(ctx, state) -> dict``: after ``backward()``, before the optimizer step;
-  returns numbers worth logging (empty most iterations).
-
-``ctx`` is a :class:`StepContext`. Tensor surgery lives in :mod:`cdcgs.train.model` and is shared.
+A strategy is configuration plus functions. The trainer owns everything that changes: the model,
+the optimizer, the generator, the complexity-map cache, and the strategy's own state (a dict of
+tensors and numbers from ``initialize_state``, saved in checkpoints and restored on resume). The
+trainer calls the same hooks on every strategy and never asks which one it has. Parameter and
+optimizer-state surgery is in :mod:`cdcgs.train.ops`; named presets in :mod:`cdcgs.train.presets`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import asdict, dataclass
-from typing import Any, Callable
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
-from . import model as ops
+from ..errors import OptionError
+from . import ops
 from .model import GaussianModel
+
+__all__ = ["ADC", "StepContext", "Strategy", "strategy_option"]
+
+
+def strategy_option(default, help: str, *, choices: tuple | None = None):
+    """A strategy hyperparameter: a dataclass field with the help line (and choices) that the
+    command line shows."""
+    metadata = {"help": help}
+    if choices is not None:
+        metadata["choices"] = tuple(choices)
+    return field(default=default, metadata=metadata)
 
 
 @dataclass
 class StepContext:
-    """What a strategy may look at during one training iteration."""
+    """What a strategy may look at, and change, during one training iteration.
+
+    A hook may change ``model`` and ``optimizer`` only through :mod:`cdcgs.train.ops`, draw random
+    numbers only from ``generator``, and render (``render``) and read ``views`` and
+    ``complexity_maps`` but not change them. Everything else is read-only.
+    """
 
     step: int  # 1-based iteration number of the step being taken
     total_steps: int
@@ -36,7 +51,34 @@ class StepContext:
     generator: torch.Generator  # on the model's device: every random draw of a strategy uses it
     render: Callable | None = None  # render(view_index) -> (image, alpha, info) of a training view
     views: list | None = None  # the training views (with their images)
-    out_dir: str | None = None  # the run's output folder
+    complexity_maps: Any = None  # cdcgs.complexity.ComplexityMaps of the training views, owned by the run
+
+
+@runtime_checkable
+class Strategy(Protocol):
+    """The hooks the trainer calls, in this order within an iteration.
+
+    - ``initialize_state(model) -> dict``: the strategy's state for a new run, and again whenever
+      the strategy resets it. The trainer keeps the dict, checkpoints it and hands it back.
+    - ``before_backward(ctx, state)``: after the render, before ``loss.backward()`` (ask the
+      render for the gradients the strategy needs, e.g. ``ctx.info.retain_absgrad()``).
+    - ``after_backward(ctx, state) -> dict``: after ``backward()``, before the optimizer step:
+      accumulate statistics in ``state`` and change the Gaussians (via :mod:`cdcgs.train.ops`);
+      returns numbers worth logging (empty most iterations).
+    - ``config() -> dict``: the name and hyperparameters, for config.json and metrics.json.
+    - ``complexity_maps_method``: the method (cdcgs.complexity.METHODS) of the complexity maps
+      that the hooks read from ``ctx.complexity_maps``, or None when they read none.
+    """
+
+    complexity_maps_method: str | None
+
+    def initialize_state(self, model: GaussianModel) -> dict: ...
+
+    def before_backward(self, ctx: StepContext, state: dict) -> None: ...
+
+    def after_backward(self, ctx: StepContext, state: dict) -> dict: ...
+
+    def config(self) -> dict: ...
 
 
 @dataclass(kw_only=True)
@@ -55,34 +97,56 @@ class ADC:
     (``densification_postfix``) before that test, so the rule never fires; its authors confirm the
     published results were made that way (graphdeco-inria/gaussian-splatting issues 123 and 643),
     and the CDC-GS code inherits it. So ``prune_screen_size`` is 0 (off) by default; 20 gives the
-    rule as written, which cost 0.75 dB of test PSNR on bonsai (README).
+    rule as written, which cost 0.75 dB of test PSNR on bonsai (docs/cdc-gs.md).
     """
 
-    grad_threshold: float = 2e-4
-    absgrad: bool = False  # AbsGS: sum of per-pixel absolute gradients (use a higher threshold)
-    densify_from: int = 500
-    densify_until: int = 15_000
-    densify_every: int = 100
-    reset_every: int = 3000
-    reset_value: float = 0.01
-    prune_opacity: float = 0.005
-    clone_max_scale: float = 0.01
-    split_count: int = 2
-    split_scale_divisor: float = 1.6
-    prune_screen_size: float = 0.0  # px; 0: off, as the 3DGS code runs (see above) and gsplat's default
-    prune_world_size: float = 0.1
-    max_gaussians: int | None = None  # no densification beyond this many Gaussians
+    grad_threshold: float = strategy_option(
+        2e-4, "densify Gaussians whose mean screen-space positional gradient (NDC) reaches this"
+    )
+    absgrad: bool = strategy_option(
+        False, "AbsGS statistic: sum of per-pixel absolute gradients (use a higher threshold)"
+    )
+    densify_from: int = strategy_option(500, "first densification after this iteration")
+    densify_until: int = strategy_option(
+        15_000, "densify, reset opacity and accumulate statistics up to this iteration"
+    )
+    densify_every: int = strategy_option(100, "iterations between densification steps")
+    reset_every: int = strategy_option(3000, "iterations between opacity resets")
+    reset_value: float = strategy_option(0.01, "opacity resets clamp every opacity to at most this")
+    prune_opacity: float = strategy_option(0.005, "prune Gaussians less opaque than this at each densification step")
+    clone_max_scale: float = strategy_option(
+        0.01, "clone (not split) selected Gaussians whose largest scale is at most this x extent"
+    )
+    split_count: int = strategy_option(2, "children that replace a split Gaussian")
+    split_scale_divisor: float = strategy_option(1.6, "children's scales are the parent's divided by this")
+    prune_screen_size: float = strategy_option(
+        0.0,
+        "after the first reset, prune Gaussians larger than this many pixels on screen (0: off, as the 3DGS code runs)",
+    )
+    prune_world_size: float = strategy_option(0.1, "after the first reset, prune Gaussians larger than this x extent")
+    max_gaussians: int | None = strategy_option(
+        None, "no densification beyond this many Gaussians (the strongest candidates that fit are kept)"
+    )
 
     def __post_init__(self):
         if self.densify_every <= 0 or self.reset_every <= 0:
-            raise ValueError("densify_every and reset_every must be positive")
+            raise OptionError("densify_every and reset_every must be positive")
         if self.split_count < 2:
-            raise ValueError(f"split_count must be at least 2, got {self.split_count}")
+            raise OptionError(f"split_count must be at least 2, got {self.split_count}")
         if self.max_gaussians is not None and self.max_gaussians <= 0:
-            raise ValueError(f"max_gaussians must be positive, got {self.max_gaussians}")
+            raise OptionError(f"max_gaussians must be positive, got {self.max_gaussians}")
+
+    @property
+    def complexity_maps_method(self) -> str | None:
+        return None
 
     def config(self) -> dict:
         return {"name": type(self).__name__, **asdict(self)}
+
+    @classmethod
+    def options(cls) -> list:
+        """The hyperparameters: dataclass fields with their help (``metadata``)."""
+        return list(fields(cls))
 
     def initialize_state(self, model: GaussianModel) -> dict:
         n, device = model.num, model.device
@@ -125,7 +189,9 @@ class ADC:
         state["max_radius"] = torch.maximum(state["max_radius"], torch.where(visible, radius, torch.zeros_like(radius)))
 
     def mean_gradient(self, state: dict) -> torch.Tensor:
-        return torch.where(state["count"] > 0, state["grad_sum"] / state["count"].clamp_min(1), torch.zeros_like(state["grad_sum"]))
+        return torch.where(
+            state["count"] > 0, state["grad_sum"] / state["count"].clamp_min(1), torch.zeros_like(state["grad_sum"])
+        )
 
     def grow_masks(self, ctx: StepContext, state: dict, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Split ``selected`` [N] into (clone, split) by size, under the ``max_gaussians`` cap."""
@@ -157,15 +223,29 @@ class ADC:
             prune |= model.scales().max(dim=-1).values > self.prune_world_size * ctx.extent
         return prune
 
-    def apply(self, ctx: StepContext, state: dict, clone: torch.Tensor, split: torch.Tensor, prune_extra: torch.Tensor | None = None) -> dict:
+    def apply(
+        self,
+        ctx: StepContext,
+        state: dict,
+        clone: torch.Tensor,
+        split: torch.Tensor,
+        prune_extra: torch.Tensor | None = None,
+    ) -> dict:
         """Clone, split, then prune by the rule (plus ``prune_extra`` [N] over the Gaussians before
         growth); reset the statistics. New Gaussians are judged like 3DGS judges them: by their
         opacity and world size, with no screen size yet."""
         model, optimizer = ctx.model, ctx.optimizer
         n_old, n_clone, n_split = model.num, int(clone.sum()), int(split.sum())
-        ops.duplicate(model, optimizer, clone)  # [old, clones]
+        ops.clone(model, optimizer, clone)  # [old, clones]
         split_mask = torch.cat([split, split.new_zeros(n_clone)])
-        ops.split(model, optimizer, split_mask, count=self.split_count, scale_divisor=self.split_scale_divisor, generator=ctx.generator)
+        ops.split(
+            model,
+            optimizer,
+            split_mask,
+            count=self.split_count,
+            scale_divisor=self.split_scale_divisor,
+            generator=ctx.generator,
+        )
         # Now [old without the split parents, clones, children].
         kept = ~split
         n_new = model.num - (n_old - n_split)
@@ -182,41 +262,3 @@ class ADC:
         selected = self.mean_gradient(state) >= self.grad_threshold
         clone, split = self.grow_masks(ctx, state, selected)
         return self.apply(ctx, state, clone, split)
-
-
-def registry() -> dict[str, tuple[type, dict]]:
-    """Named presets: name -> (strategy class, preset options).
-
-    "adc", the default, is 3DGS's density control as the 3DGS code runs it (and gsplat's
-    DefaultStrategy); "3dgs" is the same rules as the CDC-GS paper's baseline, run through
-    :class:`cdcgs.train.cdc.CDC` with every CDC part off; the CDC-GS variants are configurations of
-    that class.
-    """
-    from .cdc import CDC, PRESETS
-
-    presets = {
-        "adc": (ADC, {}),
-        "absgs": (ADC, {"absgrad": True, "grad_threshold": 8e-4}),
-    }
-    presets.update({name: (CDC, options) for name, options in PRESETS.items()})
-    return presets
-
-
-def strategy_fields(name: str) -> dict:
-    """The hyperparameters (dataclass fields) of a named strategy, with their preset values."""
-    presets = registry()
-    if name not in presets:
-        raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(presets))}")
-    cls, preset = presets[name]
-    return {f.name: preset.get(f.name, f.default) for f in dataclasses.fields(cls)}
-
-
-def make_strategy(name: str, options: dict | None = None):
-    """The named preset with ``options`` overriding its hyperparameters (names checked)."""
-    fields = strategy_fields(name)
-    cls, preset = registry()[name]
-    options = dict(options or {})
-    unknown = sorted(set(options) - set(fields))
-    if unknown:
-        raise ValueError(f"strategy {name!r} has no option(s) {unknown}; it has {sorted(fields)}")
-    return cls(**{**preset, **options})

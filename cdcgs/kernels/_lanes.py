@@ -12,7 +12,35 @@ same thing on both devices.
 
 import warp as wp
 
+from ._constants import BLOCK_SIZE
+
+__all__ = [
+    "BATCH_FIELDS",
+    "BATCH_LOAD",
+    "BATCH_STORE",
+    "GROUP_SIZE",
+    "WARP_SIZE",
+    "block_count",
+    "block_max_int",
+    "block_sync",
+    "group_read",
+    "lane_any",
+    "lane_leads",
+    "lane_max",
+    "lane_max_int",
+    "lane_sum",
+    "lane_sum_vec2",
+    "lane_sum_vec3",
+    "on_cuda",
+    "tile_batch",
+    "tile_ids",
+]
+
+# Lanes of a CUDA warp; the native snippets below are generated from it.
+WARP_SIZE = 32
 FULL_MASK = "0xffffffffu"
+# A block must be whole warps: the collectives need every lane of a warp in the block.
+assert BLOCK_SIZE % WARP_SIZE == 0, f"BLOCK_SIZE ({BLOCK_SIZE}) must be a multiple of the warp size ({WARP_SIZE})"
 
 
 def _butterfly(ctype: str, combine: str) -> str:
@@ -21,7 +49,7 @@ def _butterfly(ctype: str, combine: str) -> str:
     return f"""
 #if defined(__CUDA_ARCH__)
     {ctype} v = value;
-    for (int offset = 16; offset > 0; offset >>= 1) v = {combine.format(a="v", b=shuffled)};
+    for (int offset = {WARP_SIZE // 2}; offset > 0; offset >>= 1) v = {combine.format(a="v", b=shuffled)};
     return v;
 #else
     return value;
@@ -54,9 +82,9 @@ def lane_any(flag: int) -> int: ...
 
 
 @wp.func_native(
-    """
+    f"""
 #if defined(__CUDA_ARCH__)
-    return (threadIdx.x & 31) == 0;
+    return (threadIdx.x & {WARP_SIZE - 1}) == 0;
 #else
     return 1;
 #endif
@@ -76,52 +104,36 @@ def lane_sum_vec3(v: wp.vec3):
 
 
 # ------------------------------------------------------------------------------------------------
-# Groups of 16 lanes (half a warp) that share one Gaussian: one thread per SH coefficient. Only
-# the group's own lanes take part, so a group may leave early as a whole. CUDA only: on the CPU a
-# thread is alone and these return their input (kernels using them are launched on CUDA only).
+# Groups of half a warp (GROUP_SIZE lanes) that share one Gaussian: one thread per SH
+# coefficient. Only the group's own lanes take part, so a group may leave early as a whole. CUDA
+# only: on the CPU a thread is alone and this returns its input (kernels using it are launched on
+# CUDA only).
 
-_GROUP_MASK = "((threadIdx.x & 16) ? 0xffff0000u : 0x0000ffffu)"
-
-
-@wp.func_native(
-    f"""
-#if defined(__CUDA_ARCH__)
-    float v = value;
-    for (int offset = 8; offset > 0; offset >>= 1) v += __shfl_xor_sync({_GROUP_MASK}, v, offset, 16);
-    return v;
-#else
-    return value;
-#endif
-"""
-)
-def group_sum(value: float) -> float:
-    """The sum of ``value`` over the 16 lanes of this thread's half warp, in every lane."""
-    ...
+GROUP_SIZE = WARP_SIZE // 2
+# The lanes of this thread's half warp: the low or the high half of the 32-bit lane mask.
+_GROUP_MASK = f"((threadIdx.x & {GROUP_SIZE}) ? 0xffff0000u : 0x0000ffffu)"
+assert WARP_SIZE == 32, "_GROUP_MASK's two 16-bit halves assume a warp of 32 lanes"
 
 
 @wp.func_native(
     f"""
 #if defined(__CUDA_ARCH__)
-    return __shfl_sync({_GROUP_MASK}, value, lane, 16);
+    return __shfl_sync({_GROUP_MASK}, value, lane, {GROUP_SIZE});
 #else
     return value;
 #endif
 """
 )
 def group_read(value: float, lane: int) -> float:
-    """``value`` as lane ``lane`` (0..15) of this thread's half warp holds it."""
+    """``value`` as lane ``lane`` (0 .. GROUP_SIZE - 1) of this thread's half warp holds it."""
     ...
 
 
-@wp.func
-def group_sum_vec3(v: wp.vec3):
-    return wp.vec3(group_sum(v[0]), group_sum(v[1]), group_sum(v[2]))
-
-
 # ------------------------------------------------------------------------------------------------
-# The block of 256 threads that renders one tile: the tile's next 256 Gaussians in shared memory,
-# as three float4 fields per Gaussian (field f of slot j at f * 256 + j), so that a lane reads a
-# Gaussian with 128-bit loads that the whole warp shares (one address: a broadcast).
+# The block of BLOCK_SIZE threads that renders one tile: the tile's next BLOCK_SIZE Gaussians in
+# shared memory, as three float4 fields per Gaussian (field f of slot j at f * BLOCK_SIZE + j), so
+# that a lane reads a Gaussian with 128-bit loads that the whole warp shares (one address: a
+# broadcast).
 
 BATCH_STORE = wp.constant(0)
 BATCH_LOAD = wp.constant(1)
@@ -131,8 +143,8 @@ BATCH_FIELDS = 3
 @wp.func_native(
     f"""
 #if defined(__CUDA_ARCH__)
-    __shared__ float4 batch[256 * {BATCH_FIELDS}];
-    if (op == 0) {{ batch[slot] = make_float4(value.c[0], value.c[1], value.c[2], value.c[3]); return value; }}
+    __shared__ float4 batch[{BLOCK_SIZE * BATCH_FIELDS}];
+    if (op == {BATCH_STORE}) {{ batch[slot] = make_float4(value.c[0], value.c[1], value.c[2], value.c[3]); return value; }}
     float4 v = batch[slot];
     return wp::vec4(v.x, v.y, v.z, v.w);
 #else
@@ -187,10 +199,10 @@ def on_cuda() -> int:
 
 
 @wp.func_native(
-    """
+    f"""
 #if defined(__CUDA_ARCH__)
-    __shared__ int ids[256];
-    if (op == 0) { ids[slot] = value; return 0; }
+    __shared__ int ids[{BLOCK_SIZE}];
+    if (op == {BATCH_STORE}) {{ ids[slot] = value; return 0; }}
     return ids[slot];
 #else
     return 0;

@@ -2,6 +2,8 @@
 
 import warp as wp
 
+__all__ = ["find_nonfinite_kernel"]
+
 
 @wp.func
 def flag_nonfinite(values: wp.array(dtype=float), first: int, stride: int, slot: int, flags: wp.array(dtype=wp.int32)):

@@ -1,0 +1,162 @@
+"""Sharing torch tensors with Warp: zero-copy arrays, the right device and stream (private to cdcgs).
+
+Warp's runtime is initialised on first use (:func:`ensure_warp`, called by every function here that
+needs it), not when cdcgs is imported. What is kept between launches (launch descriptors, Warp
+streams wrapping torch's) belongs to one :class:`TorchWarpBridge`, ``BRIDGE``.
+"""
+
+import contextlib
+import threading
+
+import torch
+import warp as wp
+
+__all__ = [
+    "BRIDGE",
+    "TorchWarpBridge",
+    "ensure_warp",
+    "torch_allocators",
+    "unpin_descriptor",
+    "warp_scope",
+    "wp_arg",
+    "wp_array",
+]
+
+_TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
+_VECTOR_TYPES = {
+    wp.vec3: (torch.float32, 3),
+    wp.vec2: (torch.float32, 2),
+    wp.vec2i: (torch.int32, 2),
+    wp.vec4i: (torch.int32, 4),
+}
+
+
+def ensure_warp() -> None:
+    """Initialise Warp's runtime if it is not yet (idempotent; a no-op after the first call).
+
+    ``wp.device_from_torch``, under ``wp.from_torch`` and ``wp.stream_from_torch``, reads Warp's
+    device list, which exists only once the runtime is initialised.
+    """
+    wp.init()
+
+
+def wp_array(tensor: torch.Tensor, dtype) -> wp.array:
+    """A Warp view of a contiguous tensor's memory (no copy)."""
+    ensure_warp()
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+
+
+def unpin_descriptor(descriptor) -> None:
+    """Let go of the tensor (and gradient) that ``wp.from_torch(..., return_ctype=True)`` pins to
+    the descriptor it returns, so that a cached descriptor keeps no tensor alive.
+
+    The one place in cdcgs that touches Warp's private attributes (``_ref`` and ``_gradref``, Warp
+    1.19): a cache of pinned descriptors would keep every tensor ever passed allocated (and make
+    autograd copy gradients it could otherwise take over). tests/test_warp_api.py checks that Warp
+    still sets these attributes and that a tensor is freed once they are cleared; a Warp without
+    them raises here instead of leaking silently.
+    """
+    if not (hasattr(descriptor, "_ref") and hasattr(descriptor, "_gradref")):
+        raise RuntimeError(
+            f"wp.from_torch(return_ctype=True) of Warp {wp.__version__} no longer sets _ref/_gradref: update cdcgs._interop.unpin_descriptor"
+        )
+    descriptor._ref = descriptor._gradref = None
+
+
+class TorchWarpBridge:
+    """What cdcgs keeps between Warp launches on torch tensors, and the scope that launches run in.
+
+    - Launch descriptors (:meth:`descriptor`), cached by address, shape, strides and type: torch's
+      caching allocator hands the same blocks back every iteration, and a render passes ~70 arrays
+      (building each anew cost more host time than some kernels). At most ``max_descriptors``;
+      the cache is emptied when full.
+    - Warp streams wrapping torch's CUDA streams, one per (device index, stream handle).
+    - :meth:`scope`: Warp's default device and each device's current stream are process-wide, so
+      two threads (a training and its viewer) entering and leaving scopes in an interleaved order
+      could leave either launching on the other's stream. One scope at a time; re-entrant for
+      nested scopes in one thread.
+
+    cdcgs uses one instance, ``BRIDGE``; what it mirrors (torch's allocator and streams, Warp's
+    current device and stream) is process-wide too.
+    """
+
+    def __init__(self, max_descriptors: int = 1024):
+        self.max_descriptors = max_descriptors
+        self._descriptors: dict = {}
+        self._streams: dict = {}
+        self._lock = threading.RLock()
+        self._active = threading.local()
+
+    def descriptor(self, tensor: torch.Tensor, dtype):
+        """A kernel argument viewing ``tensor``'s memory: Warp's low-level array descriptor.
+
+        Only for ``wp.launch`` arguments, used while ``tensor`` is alive; the descriptor holds no
+        reference to it. Use :func:`wp_array` for a Warp array to keep or to slice.
+        """
+        key = (tensor.data_ptr(), tensor.shape, tensor.stride(), tensor.dtype, tensor.device, dtype)
+        descriptor = self._descriptors.get(key)
+        if descriptor is None:
+            if len(self._descriptors) >= self.max_descriptors:
+                self._descriptors.clear()
+            ensure_warp()
+            descriptor = wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
+            unpin_descriptor(descriptor)
+            self._descriptors[key] = descriptor
+        return descriptor
+
+    @contextlib.contextmanager
+    def scope(self, device: torch.device):
+        """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe).
+
+        A scope nested in one for the same device in the same thread costs nothing: the outer one's
+        device and stream stay (the stream is the one current when the outer scope was entered).
+        """
+        key = (device.type, device.index)
+        active = self._active
+        outer = getattr(active, "key", None), getattr(active, "device", None)
+        if outer[0] == key:
+            yield outer[1]
+            return
+        ensure_warp()
+        with self._lock, self._scoped(device) as warp_device:
+            active.key, active.device = key, warp_device
+            try:
+                yield warp_device
+            finally:
+                active.key, active.device = outer
+
+    @contextlib.contextmanager
+    def _scoped(self, device: torch.device):
+        if device.type == "cuda":
+            torch_stream = torch.cuda.current_stream(device)
+            key = (device.index, torch_stream.cuda_stream)
+            stream = self._streams.get(key)
+            if stream is None:
+                stream = self._streams[key] = wp.stream_from_torch(torch_stream)
+            with wp.ScopedDevice(stream.device), wp.ScopedStream(stream, sync_enter=False):
+                yield stream.device
+        else:
+            with wp.ScopedDevice("cpu"):
+                yield wp.get_device("cpu")
+
+
+BRIDGE = TorchWarpBridge()
+# The bridge's methods under the names the torch face uses.
+wp_arg = BRIDGE.descriptor
+warp_scope = BRIDGE.scope
+
+
+def torch_allocators(device: torch.device):
+    """(allocate, zeros) callables for Warp helpers that return Warp views of new torch tensors,
+    so that torch's caching allocator holds (and reports) every buffer."""
+
+    def allocate(shape, dtype, _device):
+        if dtype in _VECTOR_TYPES:
+            base, length = _VECTOR_TYPES[dtype]
+            return wp_array(torch.empty(*shape, length, dtype=base, device=device), dtype)
+        return wp_array(torch.empty(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
+
+    def zeros(shape, dtype, _device):
+        return wp_array(torch.zeros(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
+
+    return allocate, zeros

@@ -1,0 +1,158 @@
+"""One camera view and what every scene reader shares: splits, extent, image reading, missing-file
+reports, random initial points.
+
+Conventions, converted once at load: world-to-camera 4x4 matrices, camera x right, y down,
+z forward (COLMAP); intrinsics in pixels of the loaded images, with continuous coordinates
+(pixel (i, j) centred at (i + 0.5, j + 0.5)).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ..errors import InputError, OptionError
+
+log = logging.getLogger("cdcgs")
+
+__all__ = ["View", "load_images", "random_points_in_frustums", "report_missing", "scene_extent", "split_views"]
+
+
+@dataclass
+class View:
+    """One training or test image with its pinhole camera.
+
+    K [3, 3] and viewmat [4, 4] are float32 CPU tensors (world-to-camera); image is the
+    [H, W, 3] uint8 picture on the scene's device once loaded.
+    """
+
+    name: str
+    image_path: str
+    width: int
+    height: int
+    K: torch.Tensor
+    viewmat: torch.Tensor
+    image: torch.Tensor | None = None
+    # Set when the file is not already at (width, height): it is resized on load (a missing
+    # factor folder) and, with undistort_camera (a pycolmap camera), undistorted first.
+    resize_from: str | None = None
+    undistort_camera: object | None = None
+
+    @property
+    def center(self) -> torch.Tensor:
+        """[3] camera centre in world coordinates."""
+        R, t = self.viewmat[:3, :3].double(), self.viewmat[:3, 3].double()
+        return (-R.T @ t).float()
+
+
+def report_missing(path: str, message: str, skip_missing: bool, notes: list[str]) -> None:
+    """Refuse a scene with missing image files, or (``skip_missing``) warn and note it."""
+    if not skip_missing:
+        raise InputError(path, message + " (skip_missing skips them)")
+    log.warning("%s: %s; skipping them", path, message)
+    notes.append(f"{path}: {message}; skipped")
+
+
+def split_views(views: list[View], test_every: int = 8, train_on_all: bool = False) -> tuple[list[View], list[View]]:
+    """Sort by image name; every ``test_every``-th (index % test_every == 0) is held out for testing.
+
+    With ``train_on_all`` the training set holds every view (the test views are still listed, for
+    reporting on them). ``test_every`` 0 holds out nothing.
+    """
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise OptionError(f"test_every must be a non-negative int, got {test_every!r}")
+    views = sorted(views, key=lambda v: v.name)
+    test = [v for i, v in enumerate(views) if test_every and i % test_every == 0]
+    train = views if train_on_all or not test_every else [v for i, v in enumerate(views) if i % test_every != 0]
+    return train, test
+
+
+def scene_extent(views: list[View]) -> float:
+    """1.1 x the largest distance of a camera centre from the mean centre (3DGS's scene radius)."""
+    centers = torch.stack([v.center.double() for v in views])
+    radius = (centers - centers.mean(0)).norm(dim=-1).max().item()
+    return 1.1 * max(radius, 1e-6)
+
+
+def _read_image(view: View) -> np.ndarray:
+    path = view.image_path
+    try:
+        with Image.open(path) as im:
+            im = im.convert("RGB")
+            if view.undistort_camera is not None:
+                import pycolmap
+
+                bitmap = pycolmap.Bitmap.from_array(np.asarray(im, dtype=np.uint8))
+                undistorted, _ = pycolmap.undistort_image(
+                    pycolmap.UndistortCameraOptions(), bitmap, view.undistort_camera
+                )
+                im = Image.fromarray(undistorted.to_array())
+            if view.resize_from is not None or im.size != (view.width, view.height):
+                if view.resize_from is None:
+                    raise InputError(
+                        path, f"image is {im.size[0]}x{im.size[1]} but its camera says {view.width}x{view.height}"
+                    )
+                im = im.resize((view.width, view.height), Image.LANCZOS)
+            return np.array(im, dtype=np.uint8)
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise InputError(path, f"cannot read the image: {err}") from None
+
+
+def random_points_in_frustums(
+    views: list[View], count: int = 100_000, seed: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random initial points [count, 3] float32 (and random uint8 colours) that every camera sees.
+
+    Candidates are drawn uniformly in the box around the camera centres and the points one scene
+    radius in front of each camera; those inside every view frustum are kept (when too few are,
+    those seen by the most cameras).
+    """
+    g = torch.Generator().manual_seed(seed)
+    centers = torch.stack([v.center for v in views]).double()
+    radius = scene_extent(views) / 1.1
+    forward = torch.stack([v.viewmat[2, :3] for v in views]).double()
+    anchors = torch.cat([centers, centers + radius * forward])
+    lo, hi = anchors.min(0).values, anchors.max(0).values
+    lo, hi = lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo)
+    kept, seen_counts = [], []
+    total = 0
+    for _ in range(20):
+        candidates = lo + (hi - lo) * torch.rand(4 * count, 3, generator=g, dtype=torch.float64)
+        seen = torch.zeros(len(candidates), dtype=torch.int32)
+        for v in views:
+            cam = candidates @ v.viewmat[:3, :3].double().T + v.viewmat[:3, 3].double()
+            z = cam[:, 2]
+            u = v.K[0, 0] * cam[:, 0] / z.clamp_min(1e-9) + v.K[0, 2]
+            w = v.K[1, 1] * cam[:, 1] / z.clamp_min(1e-9) + v.K[1, 2]
+            seen += ((z > 1e-3) & (u >= 0) & (u < v.width) & (w >= 0) & (w < v.height)).int()
+        kept.append(candidates)
+        seen_counts.append(seen)
+        total += int((seen == len(views)).sum())
+        if total >= count:
+            break
+    candidates, seen = torch.cat(kept), torch.cat(seen_counts)
+    order = torch.argsort(seen, descending=True, stable=True)[:count]
+    points = candidates[order].float()
+    colors = torch.randint(0, 256, (len(points), 3), generator=g, dtype=torch.uint8)
+    return points, colors
+
+
+def load_images(views: list[View], device="cpu", num_threads: int | None = None, progress: bool = True) -> None:
+    """Read every view's picture into ``view.image`` ([H, W, 3] uint8 on ``device``), in threads."""
+    from tqdm import tqdm
+
+    num_threads = num_threads or min(16, (os.cpu_count() or 2) * 2)
+    with ThreadPoolExecutor(max_workers=num_threads) as pool:
+        arrays = pool.map(_read_image, views)
+        for view, array in tqdm(
+            zip(views, arrays), total=len(views), desc="loading images", unit="img", disable=not progress
+        ):
+            view.image = torch.from_numpy(array).to(device)

@@ -1,0 +1,165 @@
+"""Every change to the set of Gaussians, as free functions that keep Adam's moments in step with
+the parameters: append, remove (prune), clone, split, reset opacity, relocate; and the optimizer
+they act on.
+
+Each function takes the model and its optimizer (one named Adam group per parameter, as
+:func:`make_optimizer` builds it) and replaces the parameter tensors and their moments together.
+Strategies call these; none of them keeps state of its own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..geometry import quat_to_rotation
+from .config import LearningRates
+from .model import PARAM_NAMES, GaussianModel
+
+__all__ = ["append", "clone", "make_optimizer", "relocate", "remove", "reset_opacity", "split"]
+
+
+def make_optimizer(model: GaussianModel, lrs: LearningRates, extent: float) -> torch.optim.Adam:
+    """One Adam parameter group per parameter, named, with the 3DGS rates (eps 1e-15 as 3DGS).
+
+    On CUDA the fused implementation (one kernel per group instead of a chain of foreach kernels).
+    """
+    rates = {
+        "means": lrs.means_init * extent,
+        "log_scales": lrs.log_scales,
+        "quats": lrs.quats,
+        "opacity_logits": lrs.opacity_logits,
+        "sh_dc": lrs.sh_dc,
+        "sh_rest": lrs.sh_rest,
+    }
+    groups = [{"params": [model.params[name]], "lr": rates[name], "name": name} for name in PARAM_NAMES]
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=model.device.type == "cuda")
+
+
+def _update(model: GaussianModel, optimizer: torch.optim.Optimizer, make_param, make_moment) -> None:
+    """Replace every parameter p by make_param(name, p) and each Adam moment m by
+    make_moment(name, m)."""
+    for group in optimizer.param_groups:
+        name = group["name"]
+        old = group["params"][0]
+        new = torch.nn.Parameter(make_param(name, old.detach()).contiguous())
+        state = optimizer.state.pop(old, None)
+        if state is not None:
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in state:
+                    state[key] = make_moment(name, state[key]).contiguous()
+            optimizer.state[new] = state
+        group["params"][0] = new
+        model.params[name] = new
+
+
+def append(model: GaussianModel, optimizer: torch.optim.Optimizer, new: dict[str, torch.Tensor]) -> None:
+    """Add Gaussians (pre-activation values per parameter); their Adam moments start at zero."""
+    count = new["means"].shape[0]
+    _update(
+        model,
+        optimizer,
+        lambda name, p: torch.cat([p, new[name].to(p.dtype)]),
+        lambda name, m: torch.cat([m, m.new_zeros(count, *m.shape[1:])]),
+    )
+
+
+def remove(model: GaussianModel, optimizer: torch.optim.Optimizer, mask: torch.Tensor) -> None:
+    """Remove (prune) the Gaussians where ``mask`` [N] is True, with their Adam moments."""
+    keep = ~mask
+    _update(model, optimizer, lambda name, p: p[keep], lambda name, m: m[keep])
+
+
+def clone(model: GaussianModel, optimizer: torch.optim.Optimizer, mask: torch.Tensor) -> None:
+    """Append a copy of each selected Gaussian (3DGS's clone of small Gaussians); copies start
+    with zero moments."""
+    append(model, optimizer, {name: p.detach()[mask] for name, p in model.params.items()})
+
+
+def split(
+    model: GaussianModel,
+    optimizer: torch.optim.Optimizer,
+    mask: torch.Tensor,
+    *,
+    count: int = 2,
+    scale_divisor: float = 1.6,
+    generator: torch.Generator | None = None,
+) -> None:
+    """Replace each selected Gaussian by ``count`` sampled from it, with scales / ``scale_divisor``.
+
+    New means are drawn from the parent's Gaussian (mean + R diag(s) z, z ~ N(0, I), with
+    ``generator``); everything else is copied. The parents are removed and the children appended
+    (order: the unselected Gaussians, then the children).
+    """
+    p = {name: t.detach()[mask] for name, t in model.params.items()}
+    n = p["means"].shape[0]
+    scales = p["log_scales"].exp().repeat(count, 1)
+    rotation = quat_to_rotation(p["quats"]).repeat(count, 1, 1)
+    noise = torch.randn(n * count, 3, device=scales.device, generator=generator)
+    offsets = (rotation @ (scales * noise)[..., None])[..., 0]
+    new = {name: t.repeat(count, *([1] * (t.dim() - 1))) for name, t in p.items()}
+    new["means"] = new["means"] + offsets
+    new["log_scales"] = (scales / scale_divisor).log()
+    remove(model, optimizer, mask)
+    append(model, optimizer, new)
+
+
+def reset_opacity(model: GaussianModel, optimizer: torch.optim.Optimizer, value: float = 0.01) -> None:
+    """Clamp every opacity to at most ``value`` and zero the opacity's Adam moments (3DGS)."""
+    cap = math.log(value / (1 - value))
+    for group in optimizer.param_groups:
+        if group["name"] != "opacity_logits":
+            continue
+        old = group["params"][0]
+        new = torch.nn.Parameter(old.detach().clamp_max(cap))
+        state = optimizer.state.pop(old, None)
+        if state is not None:
+            state["exp_avg"] = torch.zeros_like(state["exp_avg"])
+            state["exp_avg_sq"] = torch.zeros_like(state["exp_avg_sq"])
+            optimizer.state[new] = state
+        group["params"][0] = new
+        model.params["opacity_logits"] = new
+
+
+def relocate(
+    model: GaussianModel,
+    optimizer: torch.optim.Optimizer,
+    targets: torch.Tensor,
+    sources: torch.Tensor,
+    new_values: dict[str, torch.Tensor] | None = None,
+) -> None:
+    """Move Gaussians in place: ``targets`` [M] (indices, e.g. dead Gaussians) take the parameters
+    of ``sources`` [M] (indices), overridden per parameter by ``new_values`` (name -> [M, ...]
+    pre-activation values, e.g. the opacity and scales that 3DGS-MCMC recomputes for the sources
+    and their copies, which are then also written to ``sources``). The moments of every touched
+    Gaussian restart at zero; the count N does not change.
+    """
+    targets, sources = targets.long(), sources.long()
+    if targets.shape != sources.shape or targets.dim() != 1:
+        raise ValueError(
+            f"targets and sources must be index vectors of one length, got {list(targets.shape)} and {list(sources.shape)}"
+        )
+    new_values = new_values or {}
+    unknown = sorted(set(new_values) - set(PARAM_NAMES))
+    if unknown:
+        raise ValueError(f"relocate: no parameters {unknown}; the model has {list(PARAM_NAMES)}")
+    touched = torch.cat([targets, sources])
+
+    def move(name, p):
+        p = p.clone()
+        values = new_values.get(name)
+        if values is None:
+            p[targets] = p[sources]
+        else:
+            values = values.to(p.dtype)
+            p[sources] = values
+            p[targets] = values
+        return p
+
+    def restart(name, m):
+        m = m.clone()
+        m[touched] = 0
+        return m
+
+    _update(model, optimizer, move, restart)

@@ -1,0 +1,182 @@
+"""The run folder: what a training writes (config, metrics, history, plots, complexity maps) and
+how a finished or interrupted run is read back (:func:`load_run`, for eval, render, export and the
+viewer).
+
+Layout of ``OUT``: config.json, checkpoint.pt, point_cloud.ply, metrics.json, history.json,
+curves.png, correlation.png (strategies that log Γ-Ψ correlation), complexity_maps/*.png,
+test_renders/*.png.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+
+import torch
+
+from ..errors import InputError
+from ..io import load_checkpoint, load_scene, read_ply
+from .config import TrainConfig, config_from_dict
+from .model import GaussianModel
+
+__all__ = [
+    "CHECKPOINT",
+    "CONFIG",
+    "PLY",
+    "Run",
+    "correlation_curve",
+    "load_run",
+    "plot_correlation",
+    "plot_curves",
+    "save_complexity_maps",
+    "view_stem",
+    "write_json",
+]
+
+CONFIG, CHECKPOINT, PLY = "config.json", "checkpoint.pt", "point_cloud.ply"
+METRICS, HISTORY = "metrics.json", "history.json"
+
+
+def view_stem(name: str) -> str:
+    """A file name stem for a view's image name (folders flattened)."""
+    return os.path.splitext(name.replace(os.sep, "_"))[0]
+
+
+def write_json(path: str, data, indent: int | None = 2) -> None:
+    with open(path, "w") as f:
+        json.dump(data, f, indent=indent)
+
+
+@dataclass
+class Run:
+    """A run folder read back: its configuration, the strategy it recorded, and its model.
+
+    ``model_path`` is the file the Gaussians came from (the PLY, else the checkpoint).
+    """
+
+    path: str
+    config: TrainConfig
+    strategy: dict
+    model: GaussianModel
+    model_path: str
+    notes: list[str] = field(default_factory=list)
+
+    def load_scene(self, device="cpu", *, load_images: bool = True, progress: bool = False):
+        """The run's scene, from the path its configuration names.
+
+        Raises:
+            InputError: the scene is no longer where the run found it, or is unreadable.
+        """
+        d = self.config.data
+        return load_scene(
+            d.data,
+            images=d.images,
+            factor=d.factor,
+            test_every=d.test_every,
+            train_on_all=d.train_on_all,
+            device=device,
+            skip_missing=d.skip_missing,
+            load_images_now=load_images,
+            progress=progress,
+        )
+
+
+def load_run(path, device="cpu") -> Run:
+    """Read the run in folder ``path``: config.json and the model (point_cloud.ply, else the
+    checkpoint's Gaussians at their highest SH degree).
+
+    Raises:
+        InputError: no such folder, not a cdcgs run folder, an unreadable configuration, or no
+            model yet.
+    """
+    path = os.fspath(path)
+    if not os.path.isdir(path):
+        raise InputError(path, "no such run folder")
+    config_path = os.path.join(path, CONFIG)
+    if not os.path.isfile(config_path):
+        raise InputError(path, "not a cdcgs output folder (no config.json)")
+    try:
+        with open(config_path) as f:
+            saved = json.load(f)
+        config = config_from_dict(saved["train"])
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(config_path, f"unreadable run configuration ({type(err).__name__}: {err})") from None
+    device = torch.device(device)
+    ply_path, checkpoint_path = os.path.join(path, PLY), os.path.join(path, CHECKPOINT)
+    if os.path.isfile(ply_path):
+        model, model_path = GaussianModel.from_ply(read_ply(ply_path), device=device), ply_path
+    elif os.path.isfile(checkpoint_path):
+        model = GaussianModel.from_state_dict(load_checkpoint(checkpoint_path)["model"], device=device)
+        model.sh_degree = model.max_sh_degree
+        model_path = checkpoint_path
+    else:
+        raise InputError(path, "holds no model yet (no point_cloud.ply or checkpoint.pt)")
+    strategy = saved.get("strategy", {})
+    return Run(
+        path=path,
+        config=config,
+        strategy=strategy if isinstance(strategy, dict) else {},
+        model=model,
+        model_path=model_path,
+    )
+
+
+def save_complexity_maps(folder: str, views, maps, count: int) -> None:
+    """The complexity maps of the first ``count`` views as grey PNGs in ``folder``."""
+    from PIL import Image
+
+    os.makedirs(folder, exist_ok=True)
+    for view, hf_map in list(zip(views, maps))[:count]:
+        Image.fromarray(hf_map.cpu().numpy()).save(os.path.join(folder, f"{view_stem(view.name)}.png"))
+
+
+def correlation_curve(history: dict) -> tuple[list[int], list[float]]:
+    """(steps, Pearson r(Γ, Ψ)) of the densification steps that logged a correlation."""
+    points = [(e["step"], e["correlation"]) for e in history["strategy"] if "correlation" in e]
+    return [p[0] for p in points], [p[1] for p in points]
+
+
+def plot_correlation(histories: dict, path: str) -> None:
+    """Pearson correlation of complexity and density at each densification step (CDC-GS Fig. 4b)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    for label, history in histories.items():
+        steps, values = correlation_curve(history)
+        ax.plot(steps, values, label=label)
+    ax.set(title="complexity-density correlation", xlabel="iteration", ylabel="Pearson r(Gamma, Psi)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_curves(history: dict, path: str) -> None:
+    """Loss, PSNR (training, smoothed; test at each evaluation) and #Gaussians over iterations."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    steps = history["step"]
+    axes[0].plot(steps, history["loss"], color="tab:blue")
+    axes[0].set(title="training loss", xlabel="iteration", yscale="log")
+    axes[1].plot(steps, history["psnr"], color="tab:blue", label="train (smoothed)")
+    if history["eval"]:
+        evals = history["eval"]
+        axes[1].plot([e["step"] for e in evals], [e["psnr"] for e in evals], "o-", color="tab:red", label="test")
+    axes[1].set(title="PSNR (dB)", xlabel="iteration")
+    axes[1].legend()
+    axes[2].plot(steps, history["gaussians"], color="tab:green")
+    axes[2].set(title="Gaussians", xlabel="iteration")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

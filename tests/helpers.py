@@ -1,0 +1,112 @@
+"""Helpers shared by the training and strategy tests: hand-built models with known Adam moments,
+fake render records, step contexts, small training configurations."""
+
+import math
+from types import SimpleNamespace
+
+import torch
+from conftest import test_devices
+
+from cdcgs.train.config import DataConfig, LearningRates, TrainConfig
+from cdcgs.train.model import GaussianModel
+from cdcgs.train.ops import make_optimizer
+from cdcgs.train.strategy import StepContext
+from cdcgs.train.trainer import Trainer
+
+DEFAULT_DEVICE = test_devices()[0]  # cpu, unless CDCGS_TEST_DEVICES narrows it
+SHORT = {"densify_from": 20, "densify_until": 120, "densify_every": 20, "reset_every": 100_000}
+
+
+def hand_model(n=6):
+    """Gaussians at x = 0..n-1 with chosen scales and opacities, and Adam moments set to known values."""
+    means = torch.zeros(n, 3)
+    means[:, 0] = torch.arange(n, dtype=torch.float32)
+    log_scales = torch.full((n, 3), math.log(0.005))
+    log_scales[3:, 0] = math.log(0.5)  # Gaussians 3.. are large
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1
+    opacity = torch.full((n,), 0.5)
+    opacity[5] = 0.001  # Gaussian 5 is nearly transparent
+    params = {
+        "means": means,
+        "log_scales": log_scales,
+        "quats": quats,
+        "opacity_logits": torch.log(opacity / (1 - opacity)),
+        "sh_dc": torch.rand(n, 1, 3),
+        "sh_rest": torch.zeros(n, 15, 3),
+    }
+    model = GaussianModel(params)
+    optimizer = make_optimizer(model, LearningRates(), extent=1.0)
+    for group in optimizer.param_groups:
+        p = group["params"][0]
+        index = torch.arange(n, dtype=torch.float32).view(-1, *[1] * (p.dim() - 1))
+        value = (index + 1).expand_as(p).clone()
+        optimizer.state[p] = {"step": torch.tensor(1.0), "exp_avg": value, "exp_avg_sq": value.clone()}
+    return model, optimizer
+
+
+def moments(optimizer, name):
+    group = next(g for g in optimizer.param_groups if g["name"] == name)
+    return optimizer.state[group["params"][0]]
+
+
+def fake_info(grad_pixels: torch.Tensor, visible: torch.Tensor, radius: torch.Tensor, width=200, height=100):
+    """What a strategy reads of a RasterizeInfo, with a chosen screen-space gradient [N, 2] in pixels."""
+    means2d = torch.zeros(len(visible), 2, requires_grad=True)
+    means2d.grad = grad_pixels
+    ndc = torch.tensor([width / 2, height / 2])
+
+    def positional_gradient(absolute=False):
+        return ((grad_pixels.abs() * 2 if absolute else grad_pixels) * ndc).norm(dim=-1)
+
+    return SimpleNamespace(
+        means2d=means2d,
+        visible=visible,
+        radii=torch.stack([radius, radius], -1).int(),
+        width=width,
+        height=height,
+        means2d_absgrad=grad_pixels.abs() * 2,
+        retain_absgrad=lambda: None,
+        positional_gradient=positional_gradient,
+    )
+
+
+def context(model, optimizer, info, step, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    return StepContext(
+        step=step,
+        total_steps=30000,
+        model=model,
+        optimizer=optimizer,
+        info=info,
+        view_index=0,
+        extent=1.0,
+        generator=generator,
+    )
+
+
+def tiny_config(scene, out, device=DEFAULT_DEVICE, **overrides):
+    values = dict(
+        data=DataConfig(data=scene),
+        out=str(out),
+        iters=40,
+        device=device,
+        eval_every=0,
+        checkpoint_every=0,
+        progress=False,
+        sh_every=10,
+    )
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+def interrupt_at(monkeypatch, step: int) -> None:
+    """Make training raise KeyboardInterrupt (Ctrl-C) when it is about to take ``step + 1``."""
+    real_step = Trainer.train_step
+
+    def interrupted(self):
+        if self.step == step:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", interrupted)
