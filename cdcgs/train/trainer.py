@@ -10,6 +10,8 @@ from __future__ import annotations
 import logging
 import math
 import os
+import signal
+import threading
 import time
 
 import torch
@@ -96,6 +98,7 @@ class Trainer:
         self.device = resolve_device(config.device)
         self.out = config.out
         self.checkpoint_path = os.path.join(self.out, outputs.CHECKPOINT)
+        self._interrupted = False  # set by Ctrl-C during run(), read after each whole step
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -247,7 +250,7 @@ class Trainer:
             save_dir=save_dir,
             lpips=self.lpips,
         )
-        summary = {k: metrics.get(k) for k in ("psnr", "ssim", "lpips", "num_gaussians")}
+        summary = {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_vgg", "lpips_alex", "num_gaussians")}
         self.history["eval"].append({"step": self.step, **summary})
         return metrics
 
@@ -305,6 +308,7 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)
         started = []
+        restore_sigint = self._catch_sigint()
         bar = tqdm(total=config.iters, initial=self.step, disable=not config.progress, unit="it", dynamic_ncols=True)
         smoothed_loss = smoothed_psnr = None
         try:
@@ -317,6 +321,8 @@ class Trainer:
                 self.train_seconds += time.perf_counter() - start
                 for callback in self.callbacks:
                     callback.on_step(self)
+                if self._interrupted:
+                    raise KeyboardInterrupt
                 smoothed_loss = loss_value if smoothed_loss is None else 0.9 * smoothed_loss + 0.1 * loss_value
                 smoothed_psnr = psnr_value if smoothed_psnr is None else 0.9 * smoothed_psnr + 0.1 * psnr_value
                 if strategy_log:
@@ -363,10 +369,28 @@ class Trainer:
             )
             raise
         finally:
+            restore_sigint()
             for callback in reversed(started):
                 callback.on_end(self)
         bar.close()
         return self.finish()
+
+    def _catch_sigint(self):
+        """Turn Ctrl-C (SIGINT) into a flag that the loop reads after a whole step, so that the
+        interrupt checkpoint holds every update it counts and no interrupt is lost inside a
+        destructor; a second Ctrl-C stops at once. Only from the main thread (where Python
+        delivers signals); returns the function that puts the previous handler back."""
+        self._interrupted = False
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def handler(signum, frame):
+            if self._interrupted:
+                raise KeyboardInterrupt
+            self._interrupted = True
+
+        previous = signal.signal(signal.SIGINT, handler)
+        return lambda: signal.signal(signal.SIGINT, previous)
 
     def finish(self) -> dict:
         self.save()
