@@ -95,15 +95,22 @@ def main():
             "final_correlation": values[-1],
             "at_step": steps[-1],
             "psnr": result["test"]["psnr"],
+            "lpips_vgg": result["test"]["lpips_vgg"],
+            "lpips_alex": result["test"]["lpips_alex"],
             "gaussians": result["num_gaussians"],
             **surface_counts(means),
         }
         rows.append(row)
         print(json.dumps(row), flush=True)
-    print("\n| run | final r(Γ, Ψ) | test PSNR | Gaussians | on objects | on wall |\n|---|---|---|---|---|---|")
+    print(
+        "\n| run | final r(Γ, Ψ) | test PSNR | LPIPS-VGG | LPIPS-Alex | Gaussians | on objects | on wall |"
+        "\n|---|---|---|---|---|---|---|---|"
+    )
     for r in rows:
+        lpips = " | ".join("-" if r[key] is None else f"{r[key]:.3f}" for key in ("lpips_vgg", "lpips_alex"))
         print(
-            f"| {r['run']} | {r['final_correlation']:.3f} (step {r['at_step']}) | {r['psnr']:.2f} | {r['gaussians']} | {r['objects']} | {r['wall']} |"
+            f"| {r['run']} | {r['final_correlation']:.3f} (step {r['at_step']}) | {r['psnr']:.2f} | {lpips} | "
+            f"{r['gaussians']} | {r['objects']} | {r['wall']} |"
         )
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(rows, f, indent=2)

@@ -235,6 +235,8 @@ def section_training(args, report):
                 "peak_gpu_memory_gb": metrics["peak_gpu_memory_gb"],
                 "psnr": metrics["test"].get("psnr"),
                 "ssim": metrics["test"].get("ssim"),
+                "lpips_vgg": metrics["test"].get("lpips_vgg"),
+                "lpips_alex": metrics["test"].get("lpips_alex"),
                 "num_gaussians": metrics["num_gaussians"],
                 "device": metrics["device"],
             }
@@ -306,11 +308,15 @@ def print_tables(rows: list[dict], machine: str) -> None:
             )
     tr = [r for r in rows if r["section"] == "training"]
     if tr:
-        print("\n| training run | it/s | train s | peak GB | PSNR | Gaussians |\n|---|---|---|---|---|---|")
+        print(
+            "\n| training run | it/s | train s | peak GB | PSNR | SSIM | LPIPS-VGG | LPIPS-Alex | Gaussians |"
+            "\n|---|---|---|---|---|---|---|---|---|"
+        )
         for r in tr:
             print(
                 f"| {r['run']} | {_f(r, 'iterations_per_second', 1)} | {_f(r, 'train_seconds', 0)} | "
-                f"{_f(r, 'peak_gpu_memory_gb')} | {_f(r, 'psnr')} | {r.get('num_gaussians', '-')} |"
+                f"{_f(r, 'peak_gpu_memory_gb')} | {_f(r, 'psnr')} | {_f(r, 'ssim', 3)} | {_f(r, 'lpips_vgg', 3)} | "
+                f"{_f(r, 'lpips_alex', 3)} | {r.get('num_gaussians', '-')} |"
             )
 
 

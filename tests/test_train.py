@@ -12,9 +12,25 @@ from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config
 from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError
 from cdcgs.io import load_checkpoint, read_ply
+from cdcgs.train.evaluate import lpips_metric
 from cdcgs.train.trainer import Trainer, TrainingDiverged
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LPIPS_AVAILABLE = not lpips_metric("cpu").note
+
+
+def test_without_lpips_weights_evaluation_reports_null_and_how_to_get_them(tiny_scene, tmp_path, monkeypatch, capsys):
+    from cdcgs.lpips import weights as lpips_weights
+
+    monkeypatch.setenv("CDCGS_CACHE", str(tmp_path / "empty-cache"))
+    monkeypatch.setattr(lpips_weights, "_torchvision_state", lambda net: None)
+    argv = ["train", "--data", str(tiny_scene), "--out", str(tmp_path / "run"), "--iters", "5", "--no-progress"]
+    assert cli_main([*argv, "--device", DEFAULT_DEVICE]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("run `cdcgs weights lpips` once") == 1 and "LPIPS-VGG" not in printed
+    test = json.load(open(tmp_path / "run" / "metrics.json"))["test"]
+    assert test["lpips_vgg"] is None and test["lpips_alex"] is None
+    assert "LPIPS-vgg" in test["lpips_note"] and "LPIPS-alex" in test["lpips_note"]
 
 
 def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path, device):
@@ -36,7 +52,12 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
     ):
         assert expected in names
     metrics = json.load(open(out / "metrics.json"))
-    assert metrics["test"]["lpips"] is None and "unavailable" in metrics["test"]["lpips_note"]
+    for key in ("lpips_vgg", "lpips_alex"):
+        if LPIPS_AVAILABLE:  # the mean of the per-view scores, each a real number
+            per_view = [entry[key] for entry in metrics["per_view"]]
+            assert metrics["test"][key] == pytest.approx(sum(per_view) / len(per_view)) and min(per_view) > 0
+        else:
+            assert metrics["test"][key] is None and "cdcgs weights lpips" in metrics["test"]["lpips_note"]
     assert metrics["iterations"] == 250 and metrics["test"]["views"] == 2 and metrics["test"]["render_fps"] > 0
     assert len(os.listdir(out / "test_renders")) == 2
     history = json.load(open(out / "history.json"))
@@ -155,6 +176,32 @@ def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
     assert json.load(open(out / "config.json"))["strategy"]["max_gaussians"] == 2000
     assert cli_main(["eval", str(out), "--device", device]) == 0
     assert "test: PSNR" in capsys.readouterr().out
+    # The same model as a bare PLY with its scene: the same scores, written beside nothing of the run.
+    ply_eval = tmp_path / "ply_eval"
+    assert (
+        cli_main(
+            [
+                "eval",
+                str(out / "point_cloud.ply"),
+                "--data",
+                str(tiny_scene),
+                "--device",
+                device,
+                "--out",
+                str(ply_eval),
+            ]
+        )
+        == 0
+    )
+    from_run = json.load(open(out / "metrics.json"))["test"]
+    from_ply = json.load(open(ply_eval / "metrics.json"))["test"]
+    for key in ("psnr", "ssim", "lpips_vgg", "lpips_alex"):
+        assert from_ply[key] == pytest.approx(from_run[key], rel=1e-5), key
+    assert len(os.listdir(ply_eval / "test_renders")) == from_run["views"]
+    assert cli_main(["eval", str(out / "point_cloud.ply"), "--device", device]) == 2
+    assert "needs its scene: --data DIR" in capsys.readouterr().err
+    assert cli_main(["eval", str(out), "--data", str(tiny_scene), "--device", device]) == 2
+    assert "--data is for evaluating a PLY" in capsys.readouterr().err
     assert cli_main(["render", str(out), "--device", device]) == 0
     assert len(os.listdir(out / "renders_test")) == 2
     assert cli_main(["render", str(out), "--path", "orbit", "--frames", "6", "--device", device]) == 0

@@ -62,7 +62,7 @@ wp.config.log_level = wp.LOG_WARNING  # before cdcgs initialises Warp: no banner
 
 from cdcgs.errors import InputError
 from cdcgs.io import GaussianPly, load_scene, scene_extent, write_ply
-from cdcgs.train.evaluate import evaluate
+from cdcgs.train.evaluate import describe_metrics, evaluate
 from cdcgs.train.loss import photometric_loss, psnr
 from cdcgs.train.model import GaussianModel
 
@@ -269,7 +269,7 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
     with open(os.path.join(args.out, "metrics.json"), "w") as f:
         json.dump(result, f, indent=2)
     if metrics["views"]:
-        print(f"test: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f} over {metrics['views']} views")
+        print(f"test: {describe_metrics(metrics)}")
     rate = result["iterations_per_second"]
     print(
         f"{result['num_gaussians']} Gaussians, {train_seconds:.1f} s of training ({rate:.1f} it/s), {result['device']}"

@@ -1,4 +1,5 @@
-"""Held-out evaluation: PSNR, SSIM, LPIPS (when its weights load), render speed, and the pictures."""
+"""Held-out evaluation: PSNR, SSIM, LPIPS-VGG and LPIPS-Alex (when their weights load), render
+speed, and the pictures."""
 
 from __future__ import annotations
 
@@ -8,27 +9,57 @@ import time
 import numpy as np
 import torch
 
+from ..errors import InputError
 from ..render import prepare_camera, rasterize
 from .loss import psnr, ssim
 from .outputs import view_stem
 
-__all__ = ["error_triptych", "evaluate", "lpips_metric", "render_view"]
+__all__ = ["LPIPS_NETS", "LpipsMetric", "describe_metrics", "error_triptych", "evaluate", "lpips_metric", "render_view"]
 
 
-def lpips_metric(device: torch.device):
-    """(callable, None) computing LPIPS (VGG) of [B, 3, H, W] images in [0, 1], or (None, reason)
-    when it is unavailable. Build it once per run and pass it to :func:`evaluate`.
+LPIPS_NETS = ("vgg", "alex")  # VGG first: the paper's and INRIA's; AlexNet: gsplat's default
+LPIPS_BATCH = 8
 
-    LPIPS needs pretrained network weights; where they cannot be loaded (no ``lpips`` package, no
-    network to fetch them), it is reported as unavailable, never estimated.
+
+class LpipsMetric:
+    """The LPIPS networks of an evaluation (VGG and AlexNet), loaded once per run.
+
+    ``nets[name]`` is the network, or absent when its weights could not be loaded; ``note`` then
+    says why and how to get them. A missing network is reported as null, never estimated.
     """
-    try:
-        import lpips
 
-        net = lpips.LPIPS(net="vgg", verbose=False).to(device).eval()
-        return (lambda a, b: net(a * 2 - 1, b * 2 - 1).flatten()), None
-    except Exception as err:  # missing package or weights that cannot be downloaded
-        return None, f"unavailable: {type(err).__name__}: {str(err)[:160]}"
+    def __init__(self, device):
+        from ..lpips import WeightsUnavailable, load_lpips
+
+        self.nets, reasons = {}, []
+        for name in LPIPS_NETS:
+            try:
+                self.nets[name] = load_lpips(name, device)
+            except (WeightsUnavailable, InputError) as err:
+                reasons.append(f"LPIPS-{name}: {err}")
+        self.note = "; ".join(reasons) or None
+
+    def scores(self, images: list[torch.Tensor], targets: list[torch.Tensor]) -> dict[str, list[float]]:
+        """{"lpips_vgg": [...], "lpips_alex": [...]} of [H, W, 3] image/target pairs in [0, 1],
+        in batches of images of one size, without autograd."""
+        out = {f"lpips_{name}": [] for name in self.nets}
+        start = 0
+        while start < len(images):
+            end = start + 1
+            while end < len(images) and end - start < LPIPS_BATCH and images[end].shape == images[start].shape:
+                end += 1
+            a = torch.stack([x.clamp(0, 1).permute(2, 0, 1) for x in images[start:end]])
+            b = torch.stack([x.permute(2, 0, 1) for x in targets[start:end]])
+            with torch.no_grad():
+                for name, net in self.nets.items():
+                    out[f"lpips_{name}"] += net(a, b).tolist()
+            start = end
+        return out
+
+
+def lpips_metric(device) -> LpipsMetric:
+    """The LPIPS networks for :func:`evaluate`; build it once per run."""
+    return LpipsMetric(device)
 
 
 def render_view(model, view, background: torch.Tensor, antialiased: bool = False, camera=None):
@@ -56,13 +87,17 @@ def evaluate(
     antialiased: bool = False,
     save_dir: str | None = None,
     render=None,
-    lpips: tuple | None = None,
+    lpips: LpipsMetric | None = None,
 ) -> dict:
     """Metrics over ``views`` (means over views) and, with ``save_dir``, one triptych PNG per view.
 
     ``render(model, view, background, antialiased) -> (image, alpha, info)`` draws a view (cdcgs's
     rasterizer by default, each view's camera prepared once; the benchmarks pass a peer's to score
     it the same way). ``lpips``: what :func:`lpips_metric` returned (built here when not given).
+
+    Returns PSNR, SSIM, LPIPS-VGG and LPIPS-Alex (``lpips_vgg``, ``lpips_alex``: null when the
+    network's weights are unavailable, with the reason in ``lpips_note``), each a mean over views
+    and per view in ``per_view``; render frames per second; the number of Gaussians.
     """
     if not views:
         return {"views": 0}
@@ -73,21 +108,25 @@ def evaluate(
             return render_view(model, view, background, antialiased, camera=cameras[id(view)])
 
     device = model.device
-    lpips_fn, lpips_reason = lpips if lpips is not None else lpips_metric(device)
-    per_view = []
+    lpips = lpips if lpips is not None else lpips_metric(device)
+    per_view, images, targets = [], [], []
     if save_dir:
         os.makedirs(save_dir, exist_ok=True)
     for view in views:
         image, _, _ = render(model, view, background, antialiased)
         gt = view.image.to(device).float() / 255.0
-        entry = {"name": view.name, "psnr": psnr(image, gt).item(), "ssim": ssim(image, gt).item()}
-        if lpips_fn is not None:
-            entry["lpips"] = lpips_fn(image.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]).item()
-        per_view.append(entry)
+        per_view.append({"name": view.name, "psnr": psnr(image, gt).item(), "ssim": ssim(image, gt).item()})
+        if lpips.nets:
+            images.append(image)
+            targets.append(gt)
         if save_dir:
             from PIL import Image
 
             Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, f"{view_stem(view.name)}.png"))
+    for key, values in lpips.scores(images, targets).items():
+        for entry, value in zip(per_view, values):
+            entry[key] = value
+    del images, targets
     # Render speed: every view once more, timed after the first pass warmed everything up.
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -101,11 +140,27 @@ def evaluate(
         "views": len(views),
         "psnr": float(np.mean([v["psnr"] for v in per_view])),
         "ssim": float(np.mean([v["ssim"] for v in per_view])),
-        "lpips": float(np.mean([v["lpips"] for v in per_view])) if lpips_fn is not None else None,
+        **{f"lpips_{name}": _mean(per_view, f"lpips_{name}") for name in LPIPS_NETS},
         "render_fps": len(views) / max(seconds, 1e-9),
         "num_gaussians": model.num,
         "per_view": per_view,
     }
-    if lpips_fn is None:
-        metrics["lpips_note"] = lpips_reason
+    if lpips.note:
+        metrics["lpips_note"] = lpips.note
     return metrics
+
+
+def describe_metrics(metrics: dict) -> str:
+    """One line of an evaluation's means: PSNR, SSIM, LPIPS-VGG, LPIPS-Alex (or how to get LPIPS)."""
+    parts = [f"PSNR {metrics['psnr']:.2f} dB", f"SSIM {metrics['ssim']:.4f}"]
+    for name, label in (("vgg", "LPIPS-VGG"), ("alex", "LPIPS-Alex")):
+        if metrics.get(f"lpips_{name}") is not None:
+            parts.append(f"{label} {metrics[f'lpips_{name}']:.4f}")
+    if metrics.get("lpips_vgg") is None or metrics.get("lpips_alex") is None:
+        parts.append("LPIPS unavailable (run `cdcgs weights lpips` once to get its weights)")
+    return ", ".join(parts) + f" over {metrics['views']} views"
+
+
+def _mean(per_view: list[dict], key: str) -> float | None:
+    values = [entry[key] for entry in per_view if key in entry]
+    return float(np.mean(values)) if values else None
