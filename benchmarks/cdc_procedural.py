@@ -65,6 +65,7 @@ def main():
     )
     parser.add_argument("--out", default="outputs/cdc_procedural", help="folder for the scene and the runs")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every run (default: 0)")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     args = parser.parse_args()
     scene = os.path.join(args.out, "scene")
@@ -79,6 +80,7 @@ def main():
             strategy=strategy,
             iters=args.iters,
             device=args.device,
+            seed=args.seed,
             sh_every=max(args.iters // 30, 1),
             eval_every=0,
             checkpoint_every=0,
