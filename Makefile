@@ -11,12 +11,12 @@ ARGS ?=
 .PHONY: install lint test train bench
 install: $(VENV)/.installed
 
+# The last step fetches the LPIPS weights for evaluation, once (skipped when already there);
+# without a network the evaluations report LPIPS as unavailable, so a failure does not stop it.
 $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q $(TORCH_SPEC)
 	$(BIN)/python -m pip install -q -e ".[test]"
-	# LPIPS weights for evaluation, once (skipped when already there); without a network the
-	# evaluations report LPIPS as unavailable, so a failure here does not stop the install.
 	$(BIN)/cdcgs weights lpips || echo "LPIPS weights not installed: run .venv/bin/cdcgs weights lpips later"
 	touch $@
 
