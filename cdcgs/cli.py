@@ -256,9 +256,12 @@ def cmd_eval(args) -> int:
                 existing = json.load(f)
     if not scene.test:
         raise OptionError(f"{args.data or args.path}: the scene has no test views (see --test-every)")
+    from .train.outputs import RunLock
+
     os.makedirs(out, exist_ok=True)
     save_dir = os.path.join(out, "test_renders")
-    metrics = evaluate(model, scene.test, background=background, antialiased=antialiased, save_dir=save_dir)
+    with RunLock(out):  # not while a training writes the same folder
+        metrics = evaluate(model, scene.test, background=background, antialiased=antialiased, save_dir=save_dir)
     existing["test"] = {k: v for k, v in metrics.items() if k != "per_view"}
     existing["per_view"] = metrics.get("per_view", [])
     path = os.path.join(out, "metrics.json")

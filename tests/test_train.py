@@ -273,3 +273,72 @@ def test_cli_help_lists_every_option():
         "--absgrad",
     ):
         assert flag in result.stdout
+
+
+def write_lock(folder, pid, host=None):
+    import socket
+
+    folder.mkdir(parents=True, exist_ok=True)
+    holder = {"pid": pid, "host": host or socket.gethostname(), "started": "2026-11-23 10:00:00"}
+    (folder / ".lock").write_text(json.dumps(holder))
+
+
+def test_a_run_folder_in_use_is_refused_even_with_overwrite(tiny_scene, tmp_path, capsys):
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        out = tmp_path / "busy"
+        write_lock(out, holder.pid)
+        for extra in ([], ["--overwrite"], ["--resume"]):
+            argv = ["train", "--data", str(tiny_scene), "--out", str(out), "--iters", "5", "--no-progress", *extra]
+            assert cli_main([*argv, "--device", DEFAULT_DEVICE]) == 2
+            err = capsys.readouterr().err
+            assert f"in use by another training (pid {holder.pid} on " in err, err
+        assert sorted(os.listdir(out)) == [".lock"], "nothing written beside the holder's lock"
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_a_lock_from_another_machine_is_refused_and_a_dead_ones_taken_over(tiny_scene, tmp_path, capsys, caplog):
+    out = tmp_path / "run"
+    write_lock(out, 12345, host="some-other-machine")
+    argv = [
+        "train",
+        "--data",
+        str(tiny_scene),
+        "--out",
+        str(out),
+        "--iters",
+        "5",
+        "--no-progress",
+        "--device",
+        DEFAULT_DEVICE,
+    ]
+    assert cli_main(argv) == 2
+    assert "another machine's cannot be checked from here), delete" in capsys.readouterr().err
+    finished = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    write_lock(out, int(finished.stdout))  # a process of this machine that is gone
+    assert cli_main(argv) == 0
+    assert f"took over the lock of a training that is gone (pid {int(finished.stdout)}" in caplog.text
+    assert not (out / ".lock").exists() and (out / "metrics.json").exists()
+    write_lock(out, 12345, host="some-other-machine")  # eval does not write into a busy run either
+    assert cli_main(["eval", str(out), "--device", DEFAULT_DEVICE]) == 2
+    assert "in use by another training" in capsys.readouterr().err
+
+
+def test_bad_out_paths_and_failed_runs_leave_nothing_behind(tiny_scene, tmp_path, capsys):
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("keep me")
+    base = ["train", "--iters", "5", "--no-progress", "--device", DEFAULT_DEVICE]
+    assert cli_main([*base, "--data", str(tiny_scene), "--out", str(a_file)]) == 2
+    assert "--out names a file, not a folder" in capsys.readouterr().err and a_file.read_text() == "keep me"
+    assert cli_main([*base, "--data", str(tmp_path / "no-scene"), "--out", str(tmp_path / "new")]) == 2
+    assert "no such scene folder" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists(), "a failed run leaves no empty folder"
+
+
+def test_the_lock_is_released_after_an_interrupt(tiny_scene, tmp_path, monkeypatch):
+    interrupt_at(monkeypatch, 7)
+    with pytest.raises(KeyboardInterrupt):
+        Trainer(tiny_config(tiny_scene, tmp_path, iters=20)).run()
+    assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / ".lock").exists()

@@ -9,6 +9,7 @@ test_renders/*.png.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ __all__ = [
     "CONFIG",
     "PLY",
     "Run",
+    "RunLock",
     "correlation_curve",
     "load_run",
     "plot_correlation",
@@ -36,6 +38,75 @@ __all__ = [
 
 CONFIG, CHECKPOINT, PLY = "config.json", "checkpoint.pt", "point_cloud.ply"
 METRICS, HISTORY = "metrics.json", "history.json"
+LOCK = ".lock"
+
+
+class RunLock:
+    """The lock of a run folder: while a training (or a resume) holds it, no other can start there.
+
+    Taken atomically (the lock file is created exclusively) and holds the owner's pid, host and
+    start time. A lock left by a process of this host that no longer exists is stale: it is
+    reported (``stale`` names it) and taken over. Use as a context manager.
+
+    Raises (on entering):
+        InputError: another live process (or a process of another host, which cannot be checked)
+            holds the folder; the message names it.
+    """
+
+    def __init__(self, folder: str):
+        self.path = os.path.join(folder, LOCK)
+        self.stale: dict | None = None
+
+    def __enter__(self) -> RunLock:
+        import socket
+        import time
+
+        me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = self._holder()
+                if (
+                    holder.get("host") == me["host"]
+                    and isinstance(holder.get("pid"), int)
+                    and not _alive(holder["pid"])
+                ):
+                    self.stale = holder
+                    os.remove(self.path)
+                    continue
+                raise InputError(
+                    os.path.dirname(self.path),
+                    f"is in use by another training (pid {holder.get('pid')} on {holder.get('host')}, started "
+                    f"{holder.get('started')}); wait for it, or choose another --out. If that process is gone "
+                    f"(another machine's cannot be checked from here), delete {self.path}",
+                ) from None
+            with os.fdopen(fd, "w") as f:
+                json.dump(me, f)
+            return self
+        raise InputError(os.path.dirname(self.path), "could not take the run folder's lock")
+
+    def __exit__(self, *exc) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(self.path)
+
+    def _holder(self) -> dict:
+        try:
+            with open(self.path) as f:
+                holder = json.load(f)
+            return holder if isinstance(holder, dict) else {}
+        except (OSError, ValueError):
+            return {}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
 
 
 def view_stem(name: str) -> str:

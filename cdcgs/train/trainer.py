@@ -113,7 +113,6 @@ class Trainer:
                     f"already holds a cdcgs run ({', '.join(previous)}); pass --resume to continue it, "
                     "--overwrite to replace it, or choose another --out",
                 )
-        os.makedirs(self.out, exist_ok=True)
         resume_state = None
         if config.resume:
             resume_state = _upgrade_checkpoint(
@@ -300,7 +299,32 @@ class Trainer:
         return loss_value, psnr_value, strategy_log
 
     def run(self) -> dict:
-        """Train to ``config.iters`` (from the checkpoint with ``resume``), evaluate, write outputs."""
+        """Train to ``config.iters`` (from the checkpoint with ``resume``), evaluate, write outputs.
+
+        The run folder is locked meanwhile (:class:`cdcgs.train.outputs.RunLock`); a folder this
+        call created is removed again when the run fails before writing anything into it.
+        """
+        if os.path.exists(self.out) and not os.path.isdir(self.out):
+            raise InputError(self.out, "--out names a file, not a folder")
+        created = not os.path.exists(self.out)
+        os.makedirs(self.out, exist_ok=True)
+        try:
+            with outputs.RunLock(self.out) as lock:
+                if lock.stale:
+                    log.warning(
+                        "%s: took over the lock of a training that is gone (pid %s on %s, started %s)",
+                        self.out,
+                        lock.stale.get("pid"),
+                        lock.stale.get("host"),
+                        lock.stale.get("started"),
+                    )
+                return self._run()
+        except BaseException:
+            if created and os.path.isdir(self.out) and not os.listdir(self.out):
+                os.rmdir(self.out)
+            raise
+
+    def _run(self) -> dict:
         self._setup()
         config = self.config
         from tqdm import tqdm
