@@ -378,7 +378,14 @@ def cmd_export(args) -> int:
 
     if not os.path.isdir(args.out_dir):
         raise InputError(args.out_dir, "no such output folder")
-    model = GaussianModel.from_state_dict(load_checkpoint(os.path.join(args.out_dir, CHECKPOINT))["model"])
+    if os.path.isdir(args.ply):
+        raise InputError(args.ply, "is a folder; give the PLY file to write, e.g. model.ply")
+    checkpoint = os.path.join(args.out_dir, CHECKPOINT)
+    model = GaussianModel.from_state_dict(load_checkpoint(checkpoint)["model"])
+    if model.nonfinite():
+        raise InputError(
+            checkpoint, f"the model's {', '.join(model.nonfinite())} hold NaN or infinite values: not exported"
+        )
     write_ply(args.ply, model.to_ply())
     print(f"wrote {model.num} Gaussians to {args.ply}")
     return 0

@@ -65,7 +65,7 @@ def as_written_before_the_restructure(out) -> None:
     the strategy options, the viewer's options in the configuration."""
     path = out / "checkpoint.pt"
     state = torch.load(path, weights_only=False)
-    del state["format"]
+    del state["format"], state["checksum"]
     state["rng"] = {"python": None, "numpy": None, "torch": torch.get_rng_state()}
     state["strategy_options"] = {**state["strategy_options"], "save_maps": 4}
     state["config"].update(strategy="adc", view=False, view_port=8080, view_host="127.0.0.1")
@@ -100,7 +100,7 @@ def test_checkpoints_this_version_cannot_resume_are_refused(tiny_scene, tmp_path
     Trainer(tiny_config(tiny_scene, out, iters=5)).run()
     state = torch.load(out / "checkpoint.pt", weights_only=False)
     change(state)
-    torch.save(state, out / "checkpoint.pt")
+    save_checkpoint(out / "checkpoint.pt", state)
     argv = [
         "train",
         "--data",
@@ -116,3 +116,50 @@ def test_checkpoints_this_version_cannot_resume_are_refused(tiny_scene, tmp_path
     ]
     assert cli_main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_flipped_bytes_in_tensor_data_are_found(tmp_path):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"step": 3, "params": {"means": torch.arange(4096, dtype=torch.float32)}})
+    data = bytearray(path.read_bytes())
+    # The tensor's bytes are stored uncompressed inside the zip: flip one in the middle of them.
+    start = bytes(data).index(torch.arange(4096, dtype=torch.float32).numpy().tobytes()[:64])
+    data[start + 5000] ^= 0x10
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="does not match its checksum: the file is damaged"):
+        load_checkpoint(path)
+
+
+def test_a_failed_write_keeps_the_previous_checkpoint_and_says_so(tmp_path, monkeypatch):
+    import errno
+
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"step": 1})
+
+    def full_disk(obj, f):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(InputError, match=r"No space left on device\); the previous checkpoint is intact"):
+        save_checkpoint(path, {"step": 2})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 1 and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
+
+
+def test_non_finite_state_is_refused_and_never_exported(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    Trainer(tiny_config(tiny_scene, out, iters=5)).run()
+    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    state["model"]["params"]["means"][0, 0] = float("nan")
+    save_checkpoint(out / "checkpoint.pt", state)  # a valid checksum over bad values
+    (out / ".checkpoint.pt.tmp-999999").write_bytes(b"left by a killed write")
+    argv = ["train", "--data", str(tiny_scene), "--out", str(out), "--iters", "10", "--resume", "--no-progress"]
+    assert cli_main([*argv, "--device", DEFAULT_DEVICE]) == 2
+    err = capsys.readouterr().err
+    assert "holds NaN or infinite values (model means): it cannot be resumed" in err, err
+    assert not (out / ".checkpoint.pt.tmp-999999").exists(), "leftover temporary files are cleaned on the next start"
+    assert cli_main(["export", str(out), str(tmp_path / "m.ply")]) == 2
+    assert "hold NaN or infinite values: not exported" in capsys.readouterr().err
+    assert not (tmp_path / "m.ply").exists()
+    assert cli_main(["export", str(out), str(tmp_path)]) == 2
+    assert "is a folder; give the PLY file to write" in capsys.readouterr().err

@@ -86,11 +86,23 @@ def test_reads_a_file_written_by_plyfile(tmp_path, normals):
     np.testing.assert_array_equal(model.opacity_logits.numpy(), data["opacity"])
 
 
+def test_non_finite_values_are_never_written(tmp_path):
+    model = random_model()
+    model.opacity_logits[2] = float("nan")
+    with pytest.raises(ValueError, match=r"not written: 1 Gaussian\(s\) have NaN or infinite opacity_logits"):
+        write_ply(tmp_path / "nan.ply", model)
+    assert not (tmp_path / "nan.ply").exists()
+
+
 def test_non_finite_values_are_refused(tmp_path):
     model = random_model()
-    model.log_scales[3, 1] = float("nan")
-    model.means[5, 0] = float("inf")
+    model.log_scales[3, 1] = 12345.0  # markers, replaced by NaN and inf in the file's bytes
+    model.means[5, 0] = 54321.0
     write_ply(tmp_path / "nan.ply", model)
+    data = (tmp_path / "nan.ply").read_bytes()
+    for marker, bad in ((12345.0, float("nan")), (54321.0, float("inf"))):
+        data = data.replace(np.float32(marker).tobytes(), np.float32(bad).tobytes())
+    (tmp_path / "nan.ply").write_bytes(data)
     with pytest.raises(InputError, match=r"2 of .* vertices hold NaN or infinite values \(the first is vertex 3\)"):
         read_ply(tmp_path / "nan.ply")
 

@@ -360,12 +360,14 @@ def bad_inputs(tmp_path, tiny_run):
         tmp_path / "empty.ply",
         GaussianPly(torch.zeros(0, 3), torch.zeros(0, 3), torch.ones(0, 4), torch.zeros(0), torch.zeros(0, 1, 3)),
     )
-    nan_means = torch.zeros(n, 3)
-    nan_means[4, 1] = float("nan")
+    marked_means = torch.zeros(n, 3)
+    marked_means[4, 1] = 12345.0  # write_ply refuses NaN: the file gets it by its bytes
     write_ply(
         tmp_path / "nan.ply",
-        GaussianPly(nan_means, torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n), torch.zeros(n, 1, 3)),
+        GaussianPly(marked_means, torch.zeros(n, 3), torch.ones(n, 4), torch.zeros(n), torch.zeros(n, 1, 3)),
     )
+    data = (tmp_path / "nan.ply").read_bytes()
+    (tmp_path / "nan.ply").write_bytes(data.replace(np.float32(12345.0).tobytes(), np.float32("nan").tobytes()))
     (tmp_path / "folder").mkdir()
     (tmp_path / "unfinished").mkdir()
     shutil.copy(tiny_run / "config.json", tmp_path / "unfinished")

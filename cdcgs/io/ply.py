@@ -59,6 +59,9 @@ def write_ply(path, model: GaussianPly) -> None:
         value = getattr(model, name)
         if tuple(value.shape) != shape:
             raise ValueError(f"{name} must have shape {list(shape)}, got {list(value.shape)}")
+        if not torch.isfinite(value).all():
+            bad = int((~torch.isfinite(value)).reshape(n, -1).any(-1).sum()) if n else 0
+            raise ValueError(f"{path}: not written: {bad} Gaussian(s) have NaN or infinite {name}")
     cpu = lambda t: t.detach().to("cpu", torch.float32).numpy()
     sh = cpu(model.sh)
     columns = [

@@ -113,6 +113,10 @@ class GaussianModel:
         degree = ply.sh_degree
         return cls(params, max_sh_degree=degree, sh_degree=degree)
 
+    def nonfinite(self) -> list[str]:
+        """Names of the parameters that hold NaN or infinite values (empty when all are finite)."""
+        return [name for name, value in self.params.items() if not torch.isfinite(value).all()]
+
     def state_dict(self) -> dict:
         return {
             "params": {k: v.detach() for k, v in self.params.items()},

@@ -183,6 +183,8 @@ def load_run(path, device="cpu") -> Run:
         model_path = checkpoint_path
     else:
         raise InputError(path, "holds no model yet (no point_cloud.ply or checkpoint.pt)")
+    if model.nonfinite():
+        raise InputError(model_path, f"the model's {', '.join(model.nonfinite())} hold NaN or infinite values")
     strategy = saved.get("strategy", {})
     return Run(
         path=path,

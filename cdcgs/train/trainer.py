@@ -19,6 +19,7 @@ import torch
 from ..complexity import ComplexityMaps
 from ..errors import InputError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
+from ..io.checkpoint import remove_temporary_files
 from ..render import prepare_camera, rasterize
 from . import outputs
 from .cdc import CDC
@@ -73,6 +74,15 @@ def _upgrade_checkpoint(state: dict, path: str) -> dict:
     ]
     if missing:
         raise InputError(path, f"not a cdcgs training checkpoint (no {', '.join(missing)})")
+    nonfinite = [f"model {name}" for name, value in state["model"]["params"].items() if not torch.isfinite(value).all()]
+    for group_state in state["optimizer"].get("state", {}).values():
+        for key, value in group_state.items():
+            if torch.is_tensor(value) and value.is_floating_point() and not torch.isfinite(value).all():
+                nonfinite.append(f"optimizer {key}")
+    if nonfinite:
+        raise InputError(
+            path, f"holds NaN or infinite values ({', '.join(sorted(set(nonfinite)))}): it cannot be resumed"
+        )
     if version == 1:
         state = dict(state)
         state.pop("rng", None)  # global generator states: nothing draws from them any more
@@ -113,6 +123,9 @@ class Trainer:
                     f"already holds a cdcgs run ({', '.join(previous)}); pass --resume to continue it, "
                     "--overwrite to replace it, or choose another --out",
                 )
+        removed = remove_temporary_files(self.checkpoint_path)  # we hold the lock: nobody else writes
+        if removed:
+            log.warning("%s: removed %d temporary file(s) of an interrupted checkpoint write", self.out, removed)
         resume_state = None
         if config.resume:
             resume_state = _upgrade_checkpoint(
