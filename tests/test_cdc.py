@@ -100,7 +100,7 @@ def test_presets_cover_the_variants_table():
         or baseline.needs_complexity
     )
     assert baseline.prune_screen_size == 0.0  # the 3DGS code's screen-size rule never fires
-    with pytest.raises(ValueError, match="complexity_schedule must be one of full, online"):
+    with pytest.raises(ValueError, match="--complexity-schedule must be one of full, online"):
         CDC.from_preset("cdc", {"complexity_schedule": "sometimes"})
 
 

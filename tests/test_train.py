@@ -342,3 +342,26 @@ def test_the_lock_is_released_after_an_interrupt(tiny_scene, tmp_path, monkeypat
     with pytest.raises(KeyboardInterrupt):
         Trainer(tiny_config(tiny_scene, tmp_path, iters=20)).run()
     assert (tmp_path / "checkpoint.pt").exists() and not (tmp_path / ".lock").exists()
+
+
+@pytest.mark.parametrize(
+    "option,value,message",
+    [
+        ("--grad-threshold", "nan", "--grad-threshold must be a finite number, got nan"),
+        ("--grad-threshold", "-1", "--grad-threshold must be in [0.0, inf], got -1.0"),
+        ("--lr-means-init", "-0.0001", "--lr-means-init must be in (0.0, inf], got -0.0001"),
+        ("--lr-opacity-logits", "inf", "--lr-opacity-logits must be a finite number, got inf"),
+        ("--reset-value", "2", "--reset-value must be in (0.0, 1.0], got 2.0"),
+        ("--rho-densify", "1.5", "--rho-densify must be in [0.0, 1.0], got 1.5"),
+        ("--densify-every", "0", "--densify-every must be in [1, inf], got 0"),
+        ("--ssim-weight", "nan", "--ssim-weight must be a finite number, got nan"),
+        ("--init-opacity", "1", "--init-opacity must be in (0, 1), got 1.0"),
+        ("--sh-degree", "4", "--sh-degree must be in [0, 3], got 4"),
+    ],
+)
+def test_numeric_options_are_checked_before_any_work(tiny_scene, tmp_path, capsys, option, value, message):
+    out = tmp_path / "never"
+    argv = ["train", "--data", str(tiny_scene), "--out", str(out), "--no-progress", "--device", DEFAULT_DEVICE]
+    assert cli_main([*argv, option, value]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

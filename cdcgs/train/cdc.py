@@ -82,8 +82,8 @@ class CDC(ADC):
         True, "draw complex-but-sparse Gaussians into densification (consistency densification)"
     )
     cdc_prune: bool = strategy_option(True, "draw flat-but-crowded Gaussians for removal (consistency pruning)")
-    rho_densify: float = strategy_option(0.01, "consistency densification draws this fraction of N")
-    rho_prune: float = strategy_option(0.01, "consistency pruning draws this fraction of N")
+    rho_densify: float = strategy_option(0.01, "consistency densification draws this fraction of N", low=0.0, high=1.0)
+    rho_prune: float = strategy_option(0.01, "consistency pruning draws this fraction of N", low=0.0, high=1.0)
     reverse: bool = strategy_option(False, "sanity ablation: densify the flat-crowded, prune the complex-sparse")
     centre: str = strategy_option(
         "mean",
@@ -91,21 +91,25 @@ class CDC(ADC):
         choices=("mean", "quantile"),
     )
     complexity_quantile: float = strategy_option(
-        0.75, "with --centre quantile: the quantile of Γ that centres its score"
+        0.75, "with --centre quantile: the quantile of Γ that centres its score", low=0.0, high=1.0
     )
-    density_quantile: float = strategy_option(0.25, "with --centre quantile: the quantile of Ψ that centres its score")
+    density_quantile: float = strategy_option(
+        0.25, "with --centre quantile: the quantile of Ψ that centres its score", low=0.0, high=1.0
+    )
     caat: bool = strategy_option(
         True, "CAAT: complexity-aware adaptive gradient threshold between --tau-low and --tau-up"
     )
-    tau_low: float = strategy_option(1.5e-4, "CAAT: threshold of the most complex Gaussians")
-    tau_up: float = strategy_option(2e-4, "CAAT: threshold of the flattest Gaussians")
+    tau_low: float = strategy_option(1.5e-4, "CAAT: threshold of the most complex Gaussians", low=0.0)
+    tau_up: float = strategy_option(2e-4, "CAAT: threshold of the flattest Gaussians", low=0.0)
     caat_lambda: float = strategy_option(6.0, "CAAT: steepness λ of the sigmoid in Γ")
     periodic_prune: bool = strategy_option(
         True,
         "every --periodic-prune-every steps remove Gaussians below --periodic-prune-opacity (replaces per-step pruning)",
     )
-    periodic_prune_every: int = strategy_option(3000, "iterations between periodic prunes")
-    periodic_prune_opacity: float = strategy_option(0.1, "the periodic prune removes Gaussians less opaque than this")
+    periodic_prune_every: int = strategy_option(3000, "iterations between periodic prunes", low=1)
+    periodic_prune_opacity: float = strategy_option(
+        0.1, "the periodic prune removes Gaussians less opaque than this", low=0.0, high=1.0
+    )
     complexity_schedule: str = strategy_option(
         "full",
         "full: Γ over every training view at each densification step (as the paper); online: from the training renders since the last step",
@@ -120,20 +124,10 @@ class CDC(ADC):
     complexity_method: str = strategy_option(
         "dwt", "high-frequency map: Haar DWT (1 or 2 levels) or an edge filter", choices=METHODS
     )
-    neighbours: int = strategy_option(3, "nearest neighbours of the density Ψ (and of the initial scales' rule)")
+    neighbours: int = strategy_option(3, "nearest neighbours that the density Ψ is measured over", low=1, high=16)
     log_correlation: bool = strategy_option(True, "log Pearson r(Γ, Ψ) at every densification step (correlation.png)")
 
-    def __post_init__(self):
-        super().__post_init__()
-        for f in fields(self):
-            allowed = f.metadata.get("choices")
-            if allowed is not None and getattr(self, f.name) not in allowed:
-                raise OptionError(f"{f.name} must be one of {', '.join(allowed)}, got {getattr(self, f.name)!r}")
-        for name in ("rho_densify", "rho_prune"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise OptionError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        if not 1 <= self.neighbours <= 16:
-            raise OptionError(f"neighbours must be in 1..16, got {self.neighbours}")
+    # Values are checked by ADC.__post_init__ (check_values), fields of this class included.
 
     @classmethod
     def from_preset(cls, name: str, options: dict | None = None) -> CDC:

@@ -6,6 +6,7 @@ Imports no kernel and no torch: the command line and run folders read it cheaply
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 from ..errors import OptionError
@@ -26,27 +27,50 @@ BACKGROUNDS = ("black", "white", "random")
 SCALE_RULES = ("3dgs", "cdc")
 
 
-def option(default, help: str, *, choices: tuple | None = None, metavar: str | None = None):
+def option(
+    default,
+    help: str,
+    *,
+    choices: tuple | None = None,
+    metavar: str | None = None,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+):
     """A dataclass field with a help line (and, for a closed set, its choices; for the usage line,
-    a name for its value) for the command line."""
+    a name for its value; for a number, its range [low, high], or (low, high] with ``low_open``)
+    for the command line and :func:`check_values`."""
     metadata = {"help": help}
     if choices is not None:
         metadata["choices"] = tuple(choices)
     if metavar is not None:
         metadata["metavar"] = metavar
+    if low is not None or high is not None:
+        metadata["range"] = (low, high, low_open)
     if isinstance(default, (list, dict)) or callable(default):
         return field(default_factory=default if callable(default) else (lambda: default), metadata=metadata)
     return field(default=default, metadata=metadata)
 
 
-def check_choices(instance) -> None:
-    """Raise ValueError for a field whose value is outside its ``choices``."""
+def check_values(instance, flag_prefix: str = "") -> None:
+    """Raise OptionError, naming the command-line flag, for a field outside its ``choices``, or a
+    number that is not finite or outside its ``range``."""
     for f in dataclasses.fields(instance):
+        value = getattr(instance, f.name)
+        flag = "--" + (flag_prefix + f.name).replace("_", "-")
         choices = f.metadata.get("choices")
-        if choices is not None and getattr(instance, f.name) not in choices:
-            raise OptionError(
-                f"{f.name} must be one of {', '.join(map(str, choices))}, got {getattr(instance, f.name)!r}"
-            )
+        if choices is not None and value not in choices:
+            raise OptionError(f"{flag} must be one of {', '.join(map(str, choices))}, got {value!r}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise OptionError(f"{flag} must be a finite number, got {value}")
+        bounds = f.metadata.get("range")
+        if bounds is not None and value is not None:
+            low, high, low_open = bounds
+            below = low is not None and (value <= low if low_open else value < low)
+            if below or (high is not None and value > high):
+                opening = "(" if low_open else "["
+                interval = f"{opening}{'-inf' if low is None else low}, {'inf' if high is None else high}]"
+                raise OptionError(f"{flag} must be in {interval}, got {value}")
 
 
 @dataclass(kw_only=True)
@@ -69,13 +93,18 @@ class DataConfig:
 class LearningRates:
     """Adam learning rates per parameter (3DGS defaults). Position rates are x scene extent."""
 
-    means_init: float = option(1.6e-4, "position learning rate at the start, x scene extent")
-    means_final: float = option(1.6e-6, "position learning rate at the end (exponential decay), x scene extent")
-    log_scales: float = option(5e-3, "learning rate of the log scales")
-    quats: float = option(1e-3, "learning rate of the rotations (quaternions)")
-    opacity_logits: float = option(5e-2, "learning rate of the opacity logits")
-    sh_dc: float = option(2.5e-3, "learning rate of the degree-0 spherical-harmonics coefficients")
-    sh_rest: float = option(2.5e-3 / 20, "learning rate of the higher spherical-harmonics coefficients")
+    means_init: float = option(1.6e-4, "position learning rate at the start, x scene extent", low=0.0, low_open=True)
+    means_final: float = option(
+        1.6e-6, "position learning rate at the end (exponential decay), x scene extent", low=0.0, low_open=True
+    )
+    log_scales: float = option(5e-3, "learning rate of the log scales", low=0.0)
+    quats: float = option(1e-3, "learning rate of the rotations (quaternions)", low=0.0)
+    opacity_logits: float = option(5e-2, "learning rate of the opacity logits", low=0.0)
+    sh_dc: float = option(2.5e-3, "learning rate of the degree-0 spherical-harmonics coefficients", low=0.0)
+    sh_rest: float = option(2.5e-3 / 20, "learning rate of the higher spherical-harmonics coefficients", low=0.0)
+
+    def __post_init__(self):
+        check_values(self, "lr_")
 
 
 @dataclass(kw_only=True)
@@ -85,14 +114,18 @@ class TrainConfig:
     data: DataConfig = field(default_factory=DataConfig, metadata={"help": "scene"})
     out: str = option("outputs/run", "output folder (metrics.json, renders, PLY, checkpoint)", metavar="DIR")
     strategy: str = option("3dgs", "densification strategy preset (docs/cdc-gs.md)", choices=tuple(PRESETS))
-    iters: int = option(30_000, "training iterations")
+    iters: int = option(30_000, "training iterations", low=1)
     device: str = option("auto", "torch device: cuda, cuda:1, cpu, or auto (cuda when there is one)", metavar="DEVICE")
     seed: int = option(0, "seed of every random draw: same seed, same device, same run")
     background: str = option("black", "background colour (random: a new colour each iteration)", choices=BACKGROUNDS)
-    sh_degree: int = option(3, "highest spherical-harmonics degree (raised by one every --sh-every steps)")
-    sh_every: int = option(1000, "iterations between spherical-harmonics degree increases")
-    ssim_weight: float = option(0.2, "loss = (1 - w) L1 + w (1 - SSIM), SSIM with an 11 px Gaussian window")
-    init_opacity: float = option(0.1, "opacity of the initial Gaussians")
+    sh_degree: int = option(
+        3, "highest spherical-harmonics degree (raised by one every --sh-every steps)", low=0, high=3
+    )
+    sh_every: int = option(1000, "iterations between spherical-harmonics degree increases", low=1)
+    ssim_weight: float = option(
+        0.2, "loss = (1 - w) L1 + w (1 - SSIM), SSIM with an 11 px Gaussian window", low=0.0, high=1.0
+    )
+    init_opacity: float = option(0.1, "opacity of the initial Gaussians, in (0, 1)", low=0.0, high=1.0, low_open=True)
     scale_rule: str = option(
         "3dgs",
         "initial scales from the 3 nearest neighbours: 3dgs (arithmetic mean) or cdc (geometric)",
@@ -100,34 +133,27 @@ class TrainConfig:
     )
     antialiased: bool = option(False, "Mip-Splatting opacity compensation in the rasterizer")
     lr: LearningRates = field(default_factory=LearningRates, metadata={"help": "learning rates"})
-    eval_every: int = option(7000, "evaluate on the test views every n iterations (and at the end; 0: only at the end)")
-    checkpoint_every: int = option(5000, "write checkpoint.pt every n iterations (and at the end; 0: only at the end)")
-    log_every: int = option(50, "iterations between points of the loss/PSNR/#Gaussians curves")
+    eval_every: int = option(
+        7000, "evaluate on the test views every n iterations (and at the end; 0: only at the end)", low=0
+    )
+    checkpoint_every: int = option(
+        5000, "write checkpoint.pt every n iterations (and at the end; 0: only at the end)", low=0
+    )
+    log_every: int = option(50, "iterations between points of the loss/PSNR/#Gaussians curves", low=1)
     save_renders: bool = option(True, "save each test view as ground truth | render | error map")
     save_maps: int = option(
         4,
         "complexity maps of the first n training views as PNGs in complexity_maps/ (strategies that measure complexity)",
+        low=0,
     )
     resume: bool = option(False, "continue the run in --out from its checkpoint.pt")
     overwrite: bool = option(False, "replace a finished or interrupted run already in --out (otherwise refused)")
     progress: bool = option(True, "show a progress bar")
 
     def __post_init__(self):
-        check_choices(self)
-        if self.iters <= 0:
-            raise OptionError(f"iters must be positive, got {self.iters}")
-        if not 0 <= self.sh_degree <= 3:
-            raise OptionError(f"sh_degree must be in 0..3, got {self.sh_degree}")
-        if not 0.0 <= self.ssim_weight <= 1.0:
-            raise OptionError(f"ssim_weight must be in [0, 1], got {self.ssim_weight}")
-        if not 0.0 < self.init_opacity < 1.0:
-            raise OptionError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
-        for name in ("sh_every", "log_every"):
-            if getattr(self, name) <= 0:
-                raise OptionError(f"{name} must be positive")
-        for name in ("eval_every", "checkpoint_every", "save_maps"):
-            if getattr(self, name) < 0:
-                raise OptionError(f"{name} must be non-negative")
+        check_values(self)
+        if self.init_opacity == 1.0:  # its logit is infinite
+            raise OptionError("--init-opacity must be in (0, 1), got 1.0")
 
 
 def config_to_dict(config: TrainConfig) -> dict:

@@ -11,25 +11,21 @@ optimizer-state surgery is in :mod:`cdcgs.train.ops`; named presets in :mod:`cdc
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Protocol, runtime_checkable
 
 import torch
 
-from ..errors import OptionError
 from . import ops
+from .config import check_values, option
 from .model import GaussianModel
 
 __all__ = ["ADC", "StepContext", "Strategy", "strategy_option"]
 
 
-def strategy_option(default, help: str, *, choices: tuple | None = None):
-    """A strategy hyperparameter: a dataclass field with the help line (and choices) that the
-    command line shows."""
-    metadata = {"help": help}
-    if choices is not None:
-        metadata["choices"] = tuple(choices)
-    return field(default=default, metadata=metadata)
+# A strategy hyperparameter: a dataclass field with its help line, choices or range (as the
+# configuration's options), which the command line shows and check_values enforces.
+strategy_option = option
 
 
 @dataclass
@@ -101,40 +97,44 @@ class ADC:
     """
 
     grad_threshold: float = strategy_option(
-        2e-4, "densify Gaussians whose mean screen-space positional gradient (NDC) reaches this"
+        2e-4, "densify Gaussians whose mean screen-space positional gradient (NDC) reaches this", low=0.0
     )
     absgrad: bool = strategy_option(
         False, "AbsGS statistic: sum of per-pixel absolute gradients (use a higher threshold)"
     )
-    densify_from: int = strategy_option(500, "first densification after this iteration")
+    densify_from: int = strategy_option(500, "first densification after this iteration", low=0)
     densify_until: int = strategy_option(
-        15_000, "densify, reset opacity and accumulate statistics up to this iteration"
+        15_000, "densify, reset opacity and accumulate statistics up to this iteration", low=0
     )
-    densify_every: int = strategy_option(100, "iterations between densification steps")
-    reset_every: int = strategy_option(3000, "iterations between opacity resets")
-    reset_value: float = strategy_option(0.01, "opacity resets clamp every opacity to at most this")
-    prune_opacity: float = strategy_option(0.005, "prune Gaussians less opaque than this at each densification step")
+    densify_every: int = strategy_option(100, "iterations between densification steps", low=1)
+    reset_every: int = strategy_option(3000, "iterations between opacity resets", low=1)
+    reset_value: float = strategy_option(
+        0.01, "opacity resets clamp every opacity to at most this", low=0.0, high=1.0, low_open=True
+    )
+    prune_opacity: float = strategy_option(
+        0.005, "prune Gaussians less opaque than this at each densification step", low=0.0, high=1.0
+    )
     clone_max_scale: float = strategy_option(
-        0.01, "clone (not split) selected Gaussians whose largest scale is at most this x extent"
+        0.01, "clone (not split) selected Gaussians whose largest scale is at most this x extent", low=0.0
     )
-    split_count: int = strategy_option(2, "children that replace a split Gaussian")
-    split_scale_divisor: float = strategy_option(1.6, "children's scales are the parent's divided by this")
+    split_count: int = strategy_option(2, "children that replace a split Gaussian", low=2)
+    split_scale_divisor: float = strategy_option(
+        1.6, "children's scales are the parent's divided by this", low=0.0, low_open=True
+    )
     prune_screen_size: float = strategy_option(
         0.0,
         "after the first reset, prune Gaussians larger than this many pixels on screen (0: off, as the 3DGS code runs)",
+        low=0.0,
     )
-    prune_world_size: float = strategy_option(0.1, "after the first reset, prune Gaussians larger than this x extent")
+    prune_world_size: float = strategy_option(
+        0.1, "after the first reset, prune Gaussians larger than this x extent", low=0.0, low_open=True
+    )
     max_gaussians: int | None = strategy_option(
-        None, "no densification beyond this many Gaussians (the strongest candidates that fit are kept)"
+        None, "no densification beyond this many Gaussians (the strongest candidates that fit are kept)", low=1
     )
 
     def __post_init__(self):
-        if self.densify_every <= 0 or self.reset_every <= 0:
-            raise OptionError("densify_every and reset_every must be positive")
-        if self.split_count < 2:
-            raise OptionError(f"split_count must be at least 2, got {self.split_count}")
-        if self.max_gaussians is not None and self.max_gaussians <= 0:
-            raise OptionError(f"max_gaussians must be positive, got {self.max_gaussians}")
+        check_values(self)
 
     @property
     def complexity_maps_method(self) -> str | None:
