@@ -2,6 +2,8 @@
 
 import logging
 import os
+import re
+import struct
 
 import numpy as np
 import pytest
@@ -134,8 +136,14 @@ def test_unreadable_model(tmp_path):
     write_colmap_scene(tmp_path)
     with open(tmp_path / "sparse" / "0" / "images.bin", "wb") as f:
         f.write(b"\x07garbage")
-    with pytest.raises(InputError, match="cannot read the COLMAP model"):
+    with pytest.raises(InputError, match=r"images\.bin: is truncated or not a COLMAP file"):
         load_scene(tmp_path)
+    # Sizes that pass the check, content that pycolmap refuses: its error, with the folder named.
+    write_colmap_scene(tmp_path / "b")
+    with open(tmp_path / "b" / "sparse" / "0" / "cameras.bin", "wb") as f:
+        f.write(struct.pack("<QiiQQd", 1, 1, 999, 64, 48, 50.0))
+    with pytest.raises(InputError, match="sparse/0: cannot read the COLMAP model"):
+        load_scene(tmp_path / "b")
 
 
 def test_missing_images_refused_or_skipped(tmp_path, caplog):
@@ -214,3 +222,46 @@ def test_read_only_scene_caches_in_user_folder(tmp_path, monkeypatch):
     scene = load_scene(scene_dir, progress=False)
     assert scene.views[0].image_path.startswith(str(tmp_path / "cache" / "cdcgs"))
     assert not (scene_dir / ".cdcgs_cache").exists()
+
+
+@pytest.mark.parametrize(
+    "damage,message",
+    [
+        (lambda d: open(os.path.join(d, "points3D.bin"), "wb").close(), "points3D.bin: is empty (0 bytes)"),
+        (lambda d: os.remove(os.path.join(d, "images.bin")), "images.bin: missing"),
+        (lambda d: _truncate(os.path.join(d, "images.bin"), 40), "images.bin: is truncated or not a COLMAP file"),
+        (lambda d: _truncate(os.path.join(d, "cameras.bin"), 5), "cameras.bin: is truncated (5 bytes"),
+        (
+            lambda d: _overwrite(os.path.join(d, "points3D.bin"), b"\xff" * 64),
+            "points3D.bin: is truncated or not a COLMAP file",
+        ),
+    ],
+)
+def test_broken_model_files_are_named_before_pycolmap_reads_them(tmp_path, damage, message):
+    import time
+
+    write_colmap_scene(tmp_path)
+    damage(str(tmp_path / "sparse" / "0"))
+    start = time.perf_counter()
+    with pytest.raises(InputError, match=re.escape(message)):
+        load_scene(tmp_path, load_images_now=False)
+    assert time.perf_counter() - start < 5.0
+
+
+def _truncate(path, size):
+    with open(path, "r+b") as f:
+        f.truncate(size)
+
+
+def _overwrite(path, data):
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def test_a_model_without_points_needs_random_init(tmp_path, caplog):
+    write_colmap_scene(tmp_path, points=np.zeros((0, 3)))
+    with pytest.raises(InputError, match="has no 3D points to start from; pass --random-init"):
+        load_scene(tmp_path, load_images_now=False)
+    scene = load_scene(tmp_path, load_images_now=False, random_init=True)
+    assert scene.points.shape[0] > 0 and "random initial points" in scene.notes[-1]
+    assert "--random-init" in caplog.text

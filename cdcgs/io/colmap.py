@@ -22,7 +22,7 @@ from PIL import Image
 from ..errors import InputError, OptionError
 from .views import View, random_points_in_frustums, report_missing
 
-__all__ = ["find_model_dir", "read_colmap", "read_reconstruction", "undistorted_scene"]
+__all__ = ["check_model_files", "find_model_dir", "read_colmap", "read_reconstruction", "undistorted_scene"]
 
 log = logging.getLogger("cdcgs")
 
@@ -41,9 +41,55 @@ def find_model_dir(root: str) -> str:
     raise InputError(root, "no COLMAP model: expected sparse/0/ or sparse/ holding cameras.bin or cameras.txt")
 
 
+# Smallest record of each binary model file after its uint64 count (COLMAP's layout): a camera
+# (id, model, width, height, one parameter), an image (id, qvec, tvec, camera id, a one-character
+# name with its terminator, the uint64 count of its 2-D points), a 3-D point (id, xyz, rgb,
+# error, the uint64 track length).
+_MIN_RECORD = {
+    "cameras.bin": 4 + 4 + 8 + 8 + 8,
+    "images.bin": 4 + 32 + 24 + 4 + 2 + 8,
+    "points3D.bin": 8 + 24 + 3 + 8 + 8,
+}
+
+
+def check_model_files(model_dir: str) -> int | None:
+    """Check a COLMAP model's files before pycolmap reads them (a 0-byte points3D.bin cost 100 s
+    and 17 GB inside pycolmap before it failed); the number of 3-D points for a binary model.
+
+    Raises:
+        InputError: naming a missing, empty or truncated file.
+    """
+    import struct
+
+    binary = os.path.isfile(os.path.join(model_dir, "cameras.bin"))
+    names = tuple(_MIN_RECORD) if binary else ("cameras.txt", "images.txt", "points3D.txt")
+    points = None
+    for name in names:
+        path = os.path.join(model_dir, name)
+        if not os.path.isfile(path):
+            raise InputError(path, "missing: a COLMAP model needs cameras, images and points3D files")
+        size = os.path.getsize(path)
+        if size == 0:
+            raise InputError(path, "is empty (0 bytes): not a COLMAP model file")
+        if not binary:
+            continue
+        if size < 8:
+            raise InputError(path, f"is truncated ({size} bytes, not even its record count)")
+        with open(path, "rb") as f:
+            (count,) = struct.unpack("<Q", f.read(8))
+        if 8 + count * _MIN_RECORD[name] > size:
+            raise InputError(
+                path, f"is truncated or not a COLMAP file: it says it holds {count:,} records, but has {size:,} bytes"
+            )
+        if name == "points3D.bin":
+            points = count
+    return points
+
+
 def read_reconstruction(model_dir: str):
     import pycolmap
 
+    check_model_files(model_dir)
     try:
         return pycolmap.Reconstruction(model_dir)
     except Exception as err:  # pycolmap raises plain RuntimeError/ValueError on bad files
@@ -138,8 +184,17 @@ def undistorted_scene(root: str, model_dir: str, reconstruction, image_dir: str)
     return os.path.join(cache, "sparse"), os.path.join(cache, "images")
 
 
-def read_colmap(root: str, images: str | None = None, factor: int | None = None, skip_missing: bool = False):
-    """Views, initial points [P, 3] float32, their colours [P, 3] uint8 and notes of a COLMAP scene."""
+def read_colmap(
+    root: str,
+    images: str | None = None,
+    factor: int | None = None,
+    skip_missing: bool = False,
+    random_init: bool = False,
+):
+    """Views, initial points [P, 3] float32, their colours [P, 3] uint8 and notes of a COLMAP scene.
+
+    A model without 3-D points is refused unless ``random_init``: then random points inside the
+    cameras' common view, announced."""
     root = os.fspath(root)
     if not os.path.isdir(root):
         raise InputError(root, "no such scene folder")
@@ -229,7 +284,17 @@ def read_colmap(root: str, images: str | None = None, factor: int | None = None,
     if len(points3d):
         points = torch.from_numpy(np.array([p.xyz for p in points3d.values()], dtype=np.float32))
         colors = torch.from_numpy(np.array([p.color for p in points3d.values()], dtype=np.uint8))
+    elif not random_init:
+        raise InputError(
+            model_dir,
+            "the COLMAP model has no 3D points to start from; pass --random-init to start from random "
+            "points inside the cameras' common view instead",
+        )
     else:
         points, colors = random_points_in_frustums(views)
-        notes.append("the COLMAP model has no 3D points: random initial points inside the cameras' common view")
+        note = (
+            "the COLMAP model has no 3D points: random initial points inside the cameras' common view (--random-init)"
+        )
+        log.warning("%s: %s", model_dir, note)
+        notes.append(note)
     return views, points, colors, notes

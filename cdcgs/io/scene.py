@@ -51,6 +51,7 @@ def load_scene(
     load_images_now: bool = True,
     num_threads: int | None = None,
     skip_missing: bool = False,
+    random_init: bool = False,
     progress: bool = True,
 ) -> Scene:
     """Load a COLMAP folder (``sparse/0`` or ``sparse``) or a NeRF-style ``transforms.json`` scene.
@@ -63,6 +64,8 @@ def load_scene(
         test_every: hold out every n-th view by sorted name (0: none). train_on_all: train on all.
         device: where the uint8 images live. load_images_now: read the pictures now.
         skip_missing: skip frames whose image file is missing (reported) instead of refusing.
+        random_init: a COLMAP model without 3-D points starts from random points (announced)
+            instead of being refused.
 
     Raises:
         InputError: a missing or malformed folder, model, image or transforms file.
@@ -79,7 +82,9 @@ def load_scene(
         views, points, colors, notes = read_transforms(transforms, factor=factor or 1, skip_missing=skip_missing)
         root, source = os.path.dirname(os.path.abspath(transforms)), "transforms"
     elif os.path.isdir(path):
-        views, points, colors, notes = read_colmap(path, images=images, factor=factor, skip_missing=skip_missing)
+        views, points, colors, notes = read_colmap(
+            path, images=images, factor=factor, skip_missing=skip_missing, random_init=random_init
+        )
         root, source = path, "colmap"
     else:
         raise InputError(path, "not a scene: expected a folder with sparse/0 (COLMAP) or a transforms.json")

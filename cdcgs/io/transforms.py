@@ -195,5 +195,7 @@ def read_transforms(json_path: str, factor: int = 1, skip_missing: bool = False)
         points, colors = _read_point_cloud(json_path, os.path.join(base, meta["ply_file_path"]))
     else:
         points, colors = random_points_in_frustums(views)
-        notes.append("no ply_file_path: random initial points inside the cameras' common view")
+        note = "no ply_file_path: random initial points inside the cameras' common view (as 3DGS does for such scenes)"
+        log.warning("%s: %s", json_path, note)
+        notes.append(note)
     return views, points, colors, notes

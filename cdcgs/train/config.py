@@ -87,6 +87,9 @@ class DataConfig:
     test_every: int = option(8, "hold out every n-th image by sorted name for testing (0: none)")
     train_on_all: bool = option(False, "train on every image (the held-out ones are still evaluated)")
     skip_missing: bool = option(False, "skip views whose image file is missing instead of refusing the scene")
+    random_init: bool = option(
+        False, "a COLMAP model without 3D points starts from random points in the cameras' common view (else refused)"
+    )
 
 
 @dataclass(kw_only=True)

@@ -148,6 +148,7 @@ class Run:
             train_on_all=d.train_on_all,
             device=device,
             skip_missing=d.skip_missing,
+            random_init=d.random_init,
             load_images_now=load_images,
             progress=progress,
         )

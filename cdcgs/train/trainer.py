@@ -147,6 +147,7 @@ class Trainer:
             train_on_all=d.train_on_all,
             device=self.device,
             skip_missing=d.skip_missing,
+            random_init=d.random_init,
             progress=config.progress,
         )
         # Each training view's camera, checked and built once (the render would redo it every step).
