@@ -265,3 +265,17 @@ def test_a_model_without_points_needs_random_init(tmp_path, caplog):
     scene = load_scene(tmp_path, load_images_now=False, random_init=True)
     assert scene.points.shape[0] > 0 and "random initial points" in scene.notes[-1]
     assert "--random-init" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "params,message",
+    [
+        ([1e20, 52.0, 31.5, 24.2], "focal length fx = 1e+20 px is not plausible for an image 64 px across"),
+        ([50.0, 0.0, 31.5, 24.2], "focal length fy = 0 px is not plausible"),
+        ([50.0, 52.0, 5000.0, 24.2], "principal point cx = 5000 px lies far outside the 64 px image"),
+    ],
+)
+def test_implausible_intrinsics_are_refused_at_load(tmp_path, params, message):
+    write_colmap_scene(tmp_path, params=params)
+    with pytest.raises(InputError, match=re.escape(message)):
+        load_scene(tmp_path, load_images_now=False)

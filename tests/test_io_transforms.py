@@ -129,6 +129,10 @@ def test_missing_frames_refused_or_skipped(tmp_path, caplog):
             "'fl_x' must be a finite number",
         ),
         (
+            '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": 1e20}',
+            r"focal length fx = 1e\+20 px is not plausible for an image 40 px across",
+        ),
+        (
             '{"frames": [{"file_path": "images/frame_000", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}], "fl_x": 40, "w": 99}',
             "image is 40x30 but transforms.json says 99x30",
         ),

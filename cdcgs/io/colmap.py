@@ -20,7 +20,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError, OptionError
-from .views import View, random_points_in_frustums, report_missing
+from .views import View, check_intrinsics, random_points_in_frustums, report_missing
 
 __all__ = ["check_model_files", "find_model_dir", "read_colmap", "read_reconstruction", "undistorted_scene"]
 
@@ -264,6 +264,8 @@ def read_colmap(
         if resize_by > 1:
             width, height = max(1, round(width / resize_by)), max(1, round(height / resize_by))
         fx, fy, cx, cy = _pinhole_intrinsics(camera)
+        where = f"camera {img.camera_id} (image {img.name})"
+        check_intrinsics(os.path.join(model_dir, "cameras.bin"), where, fx, fy, cx, cy, camera.width, camera.height)
         sx, sy = width / camera.width, height / camera.height
         K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
         viewmat = torch.eye(4, dtype=torch.float64)

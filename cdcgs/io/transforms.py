@@ -18,7 +18,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError
-from .views import View, random_points_in_frustums, report_missing
+from .views import View, check_intrinsics, random_points_in_frustums, report_missing
 
 __all__ = ["read_transforms"]
 
@@ -171,6 +171,7 @@ def read_transforms(json_path: str, factor: int = 1, skip_missing: bool = False)
             new_w, new_h = max(1, round(width / factor)), max(1, round(height / factor))
             sx, sy = new_w / width, new_h / height
             width, height, resize_from = new_w, new_h, image_path
+        check_intrinsics(json_path, where, fx * sx, fy * sy, cx * sx, cy * sy, width, height)
         K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
         views.append(
             View(

@@ -9,6 +9,7 @@ z forward (COLMAP); intrinsics in pixels of the loaded images, with continuous c
 from __future__ import annotations
 
 import logging
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -21,7 +22,15 @@ from ..errors import InputError, OptionError
 
 log = logging.getLogger("cdcgs")
 
-__all__ = ["View", "load_images", "random_points_in_frustums", "report_missing", "scene_extent", "split_views"]
+__all__ = [
+    "View",
+    "check_intrinsics",
+    "load_images",
+    "random_points_in_frustums",
+    "report_missing",
+    "scene_extent",
+    "split_views",
+]
 
 
 @dataclass
@@ -57,6 +66,34 @@ def report_missing(path: str, message: str, skip_missing: bool, notes: list[str]
         raise InputError(path, message + " (skip_missing skips them)")
     log.warning("%s: %s; skipping them", path, message)
     notes.append(f"{path}: {message}; skipped")
+
+
+def check_intrinsics(
+    source: str, where: str, fx: float, fy: float, cx: float, cy: float, width: int, height: int
+) -> None:
+    """Refuse intrinsics that cannot be a real pinhole camera of a ``width`` x ``height`` image:
+    non-finite or non-positive focal lengths, a field of view outside 0.01°..179° (focal length
+    over 0.0087 to 11,000 times the image size), or a principal point far outside the image.
+
+    Raises:
+        InputError: naming ``source`` (the file) and ``where`` (the camera or frame).
+    """
+    values = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
+    for name, value in values.items():
+        if not math.isfinite(value):
+            raise InputError(source, f"{where}: {name} is {value}, not a finite number")
+    for name, focal, size in (("fx", fx, width), ("fy", fy, height)):
+        if not 0.0087 * size <= focal <= 11_000 * size:
+            raise InputError(
+                source,
+                f"{where}: focal length {name} = {focal:g} px is not plausible for an image {size} px across "
+                f"(expected {0.0087 * size:g} to {11_000 * size:g}: a field of view of 0.01 to 179 degrees)",
+            )
+    for name, centre, size in (("cx", cx, width), ("cy", cy, height)):
+        if not -size <= centre <= 2 * size:
+            raise InputError(
+                source, f"{where}: principal point {name} = {centre:g} px lies far outside the {size} px image"
+            )
 
 
 def split_views(views: list[View], test_every: int = 8, train_on_all: bool = False) -> tuple[list[View], list[View]]:
