@@ -211,7 +211,8 @@ def test_evaluation_of_images_too_small_for_alexnet_scores_them_null(monkeypatch
     metric = LpipsMetric.__new__(LpipsMetric)
     metric.nets, metric.note = {"vgg": random_network("vgg").float(), "alex": random_network("alex").float()}, None
     images = [torch.rand(24, 32, 3), torch.rand(40, 40, 3)]
-    scores, notes = metric.scores(images, [x.flip(0) for x in images])
+    scores = metric.scores(images, [x.flip(0) for x in images])
     assert scores["lpips_alex"][0] is None and scores["lpips_alex"][1] > 0
     assert all(value > 0 for value in scores["lpips_vgg"])
-    assert notes == ["LPIPS-alex: 1 image(s) smaller than its 31 x 31 pixels not scored"]
+    per_view = [{"lpips_vgg": v, "lpips_alex": a} for v, a in zip(scores["lpips_vgg"], scores["lpips_alex"])]
+    assert metric.too_small(per_view) == ["LPIPS-alex: 1 image(s) smaller than its 31 x 31 pixels not scored"]

@@ -39,18 +39,11 @@ class LpipsMetric:
                 reasons.append(f"LPIPS-{name}: {err}")
         self.note = "; ".join(reasons) or None
 
-    def scores(self, images: list[torch.Tensor], targets: list[torch.Tensor]) -> tuple[dict, list[str]]:
-        """({"lpips_vgg": [...], "lpips_alex": [...]}, notes) of [H, W, 3] image/target pairs in
-        [0, 1], in batches of images of one size, without autograd. An image smaller than a net
-        takes (16 px for VGG, 31 px for AlexNet) gets None from it, and a note says so."""
+    def scores(self, images: list[torch.Tensor], targets: list[torch.Tensor]) -> dict[str, list[float | None]]:
+        """{"lpips_vgg": [...], "lpips_alex": [...]} of [H, W, 3] image/target pairs in [0, 1], in
+        batches of images of one size, without autograd. An image smaller than a net takes (16 px
+        for VGG, 31 px for AlexNet) gets None from it (:meth:`too_small` words the note)."""
         out = {f"lpips_{name}": [] for name in self.nets}
-        notes = []
-        for name, net in self.nets.items():
-            small = sum(min(image.shape[:2]) < net.min_size for image in images)
-            if small:
-                notes.append(
-                    f"LPIPS-{name}: {small} image(s) smaller than its {net.min_size} x {net.min_size} pixels not scored"
-                )
         start = 0
         while start < len(images):
             end = start + 1
@@ -65,7 +58,18 @@ class LpipsMetric:
                     else:
                         out[f"lpips_{name}"] += net(a, b).tolist()
             start = end
-        return out, notes
+        return out
+
+    def too_small(self, per_view: list[dict]) -> list[str]:
+        """Notes on the views that a net could not score because they are too small."""
+        notes = []
+        for name, net in self.nets.items():
+            count = sum(f"lpips_{name}" in entry and entry[f"lpips_{name}"] is None for entry in per_view)
+            if count:
+                notes.append(
+                    f"LPIPS-{name}: {count} image(s) smaller than its {net.min_size} x {net.min_size} pixels not scored"
+                )
+        return notes
 
 
 def lpips_metric(device) -> LpipsMetric:
@@ -120,7 +124,15 @@ def evaluate(
 
     device = model.device
     lpips = lpips if lpips is not None else lpips_metric(device)
-    per_view, images, targets = [], [], []
+    per_view, pending = [], []  # pending: (entry, image, target) awaiting LPIPS, at most a batch
+
+    def score_pending():
+        scores = lpips.scores([p[1] for p in pending], [p[2] for p in pending])
+        for key, values in scores.items():
+            for (entry, _, _), value in zip(pending, values):
+                entry[key] = value
+        pending.clear()
+
     if save_dir:
         os.makedirs(save_dir, exist_ok=True)
     for view in views:
@@ -128,17 +140,15 @@ def evaluate(
         gt = view.image.to(device).float() / 255.0
         per_view.append({"name": view.name, "psnr": psnr(image, gt).item(), "ssim": ssim(image, gt).item()})
         if lpips.nets:
-            images.append(image)
-            targets.append(gt)
+            pending.append((per_view[-1], image, gt))  # scored a batch at a time, not all kept
+            if len(pending) == LPIPS_BATCH:
+                score_pending()
         if save_dir:
             from PIL import Image
 
             Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, f"{view_stem(view.name)}.png"))
-    scores, notes = lpips.scores(images, targets)
-    for key, values in scores.items():
-        for entry, value in zip(per_view, values):
-            entry[key] = value
-    del images, targets
+    score_pending()
+    notes = lpips.too_small(per_view)
     # Render speed: every view once more, timed after the first pass warmed everything up.
     if device.type == "cuda":
         torch.cuda.synchronize(device)
