@@ -110,3 +110,20 @@ def interrupt_at(monkeypatch, step: int) -> None:
         return real_step(self)
 
     monkeypatch.setattr(Trainer, "train_step", interrupted)
+
+
+def train_argv(scene, out, iters: int, *extra: str, device: str = DEFAULT_DEVICE) -> list[str]:
+    """`cdcgs train` arguments for a short run of ``scene`` into ``out``, without a progress bar."""
+    return [
+        "train",
+        "--data",
+        str(scene),
+        "--out",
+        str(out),
+        "--iters",
+        str(iters),
+        "--no-progress",
+        "--device",
+        device,
+        *extra,
+    ]

@@ -4,7 +4,7 @@ import json
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, tiny_config
+from helpers import DEFAULT_DEVICE, tiny_config, train_argv
 
 from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError
@@ -101,19 +101,7 @@ def test_checkpoints_this_version_cannot_resume_are_refused(tiny_scene, tmp_path
     state = torch.load(out / "checkpoint.pt", weights_only=False)
     change(state)
     save_checkpoint(out / "checkpoint.pt", state)
-    argv = [
-        "train",
-        "--data",
-        str(tiny_scene),
-        "--out",
-        str(out),
-        "--iters",
-        "10",
-        "--resume",
-        "--no-progress",
-        "--device",
-        DEFAULT_DEVICE,
-    ]
+    argv = train_argv(tiny_scene, out, 10, "--resume")
     assert cli_main(argv) == 2
     assert message in capsys.readouterr().err
 

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config
+from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config, train_argv
 
 from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError
@@ -71,18 +71,7 @@ def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):
     with pytest.raises(InputError, match=r"already holds a cdcgs run .*--resume.*--overwrite"):
         Trainer(tiny_config(tiny_scene, tmp_path, iters=5), SHORT).run()
     assert (tmp_path / "checkpoint.pt").read_bytes() == before
-    argv = [
-        "train",
-        "--data",
-        str(tiny_scene),
-        "--out",
-        str(tmp_path),
-        "--iters",
-        "5",
-        "--no-progress",
-        "--device",
-        DEFAULT_DEVICE,
-    ]
+    argv = train_argv(tiny_scene, tmp_path, 5)
     assert cli_main(argv) == 2 and "already holds a cdcgs run" in capsys.readouterr().err
     assert cli_main([*argv, "--overwrite"]) == 0
 
@@ -302,18 +291,7 @@ def test_a_run_folder_in_use_is_refused_even_with_overwrite(tiny_scene, tmp_path
 def test_a_lock_from_another_machine_is_refused_and_a_dead_ones_taken_over(tiny_scene, tmp_path, capsys, caplog):
     out = tmp_path / "run"
     write_lock(out, 12345, host="some-other-machine")
-    argv = [
-        "train",
-        "--data",
-        str(tiny_scene),
-        "--out",
-        str(out),
-        "--iters",
-        "5",
-        "--no-progress",
-        "--device",
-        DEFAULT_DEVICE,
-    ]
+    argv = train_argv(tiny_scene, out, 5)
     assert cli_main(argv) == 2
     assert "another machine's cannot be checked from here), delete" in capsys.readouterr().err
     finished = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
