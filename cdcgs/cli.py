@@ -182,8 +182,8 @@ def cmd_train(args) -> int:
     except TrainingDiverged as err:
         print(f"cdcgs train: {err}", file=sys.stderr)
         return 3
-    except KeyboardInterrupt:
-        return 130
+    except KeyboardInterrupt as stop:  # SIGINT or SIGTERM: 128 + the signal's number, as a shell reports it
+        return getattr(stop, "exit_status", 130)
     _print_result(config.out, result)
     return 0
 

@@ -1,10 +1,12 @@
 """The exceptions cdcgs raises for bad user input: a file or folder (:class:`InputError`), an
 option (:class:`OptionError`). The command line reports both in one line and exits with 2; every
-other exception is a defect and keeps its traceback."""
+other exception is a defect and keeps its traceback. :class:`NonFiniteError` is the render's
+refusal of NaN or infinite inputs (a ValueError, as before), which the trainer turns into a report
+of where the run's numbers went wrong."""
 
 import os
 
-__all__ = ["InputError", "OptionError"]
+__all__ = ["InputError", "NonFiniteError", "OptionError"]
 
 
 class InputError(ValueError):
@@ -22,3 +24,11 @@ class InputError(ValueError):
 
 class OptionError(ValueError):
     """An option (a command-line flag or a configuration value) has a value cdcgs refuses."""
+
+
+class NonFiniteError(ValueError):
+    """A tensor handed to the render holds NaN or infinite values. ``name``: which argument."""
+
+    def __init__(self, name: str):
+        self.name = name
+        super().__init__(f"{name} has non-finite values (NaN or inf)")

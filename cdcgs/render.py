@@ -19,6 +19,7 @@ from ._interop import torch_allocators as _torch_allocators
 from ._interop import warp_scope as _warp_scope
 from ._interop import wp_arg as _arg
 from ._interop import wp_array as _wp
+from .errors import NonFiniteError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
 from .kernels.binning import TileBins, bin_gaussians
@@ -570,7 +571,7 @@ def rasterize(
         if len(values) != 3:
             raise ValueError(f"background must have 3 entries, got {len(values)}")
         if not all(math.isfinite(v) for v in values):
-            raise ValueError("background has non-finite values (NaN or inf)")
+            raise NonFiniteError("background")
         background = means.new_tensor(values)
     prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
     width, height = prepared.width, prepared.height
@@ -608,7 +609,7 @@ def rasterize(
             values = torch.cat([nonfinite, wp.to_torch(offsets)[-1:]]).tolist()
             for name, bad in zip(checked, values[:-1]):
                 if bad:
-                    raise ValueError(f"{name} has non-finite values (NaN or inf)")
+                    raise NonFiniteError(name)
             return values[-1]
 
         allocate, zeros = _torch_allocators(device)

@@ -2,6 +2,8 @@
 fake render records, step contexts, small training configurations."""
 
 import math
+import os
+import signal
 from types import SimpleNamespace
 
 import torch
@@ -100,14 +102,16 @@ def tiny_config(scene, out, device=DEFAULT_DEVICE, **overrides):
     return TrainConfig(**values)
 
 
-def interrupt_at(monkeypatch, step: int) -> None:
-    """Make training raise KeyboardInterrupt (Ctrl-C) when it is about to take ``step + 1``."""
+def interrupt_at(monkeypatch, step: int, signum: int = signal.SIGINT) -> None:
+    """Send the process ``signum`` (Ctrl-C's SIGINT by default) during iteration ``step``, after
+    its update: the run stops there with a checkpoint of iteration ``step``."""
     real_step = Trainer.train_step
 
     def interrupted(self):
+        result = real_step(self)
         if self.step == step:
-            raise KeyboardInterrupt
-        return real_step(self)
+            os.kill(os.getpid(), signum)
+        return result
 
     monkeypatch.setattr(Trainer, "train_step", interrupted)
 

@@ -13,7 +13,7 @@ from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError
 from cdcgs.io import load_checkpoint, read_ply
 from cdcgs.train.evaluate import lpips_metric
-from cdcgs.train.trainer import Trainer, TrainingDiverged
+from cdcgs.train.trainer import Trainer
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LPIPS_AVAILABLE = not lpips_metric("cpu").note
@@ -104,26 +104,6 @@ def test_same_seed_same_run_and_resume_continues_it(tiny_scene, tmp_path, monkey
     for name, p in straight.model.params.items():
         assert torch.equal(p, again.model.params[name]), f"{name}: same seed, different run"
         assert torch.equal(p, resumed.model.params[name]), f"{name}: the resumed run differs"
-
-
-def test_nan_loss_stops_with_last_good_checkpoint(tiny_scene, tmp_path, monkeypatch, device):
-    import cdcgs.train.trainer as trainer_module
-
-    real = trainer_module.photometric_loss
-    calls = {"n": 0}
-
-    def flaky(image, target, w):
-        calls["n"] += 1
-        loss = real(image, target, w)
-        return loss * float("nan") if calls["n"] == 12 else loss
-
-    monkeypatch.setattr(trainer_module, "photometric_loss", flaky)
-    trainer = Trainer(tiny_config(tiny_scene, tmp_path, device), SHORT)
-    with pytest.raises(TrainingDiverged, match=r"loss became nan at iteration 12.*iteration 11"):
-        trainer.run()
-    state = load_checkpoint(tmp_path / "checkpoint.pt")
-    assert state["step"] == 11
-    assert all(torch.isfinite(p).all() for p in state["model"]["params"].values())
 
 
 def test_ctrl_c_writes_checkpoint_and_ply(tiny_scene, tmp_path, monkeypatch):

@@ -260,4 +260,4 @@ def test_train_view_shows_the_model_while_it_trains(browser, trained, tmp_path):
     finally:
         code = training.interrupt()
     output = "".join(training.output)
-    assert code == 130 and "interrupted at iteration" in output, output
+    assert code == 130 and "stopped by SIGINT at iteration" in output, output

@@ -16,6 +16,8 @@ import os
 import numpy as np
 from PIL import Image
 
+from ..io._pycolmap import import_pycolmap
+
 __all__ = ["make_procedural_scene", "orbit_cameras", "render", "sparse_points", "trace"]
 
 LIGHT = np.array([0.4, 0.8, 0.45]) / np.linalg.norm([0.4, 0.8, 0.45])
@@ -203,7 +205,7 @@ def make_procedural_scene(
     root, *, views: int = 40, width: int = 96, height: int = 72, points: int = 6000, seed: int = 0
 ) -> str:
     """Write the scene to ``root`` as a COLMAP folder (sparse/0, images/); returns ``root``."""
-    import pycolmap  # after PIL (see cdcgs/io/colmap.py)
+    pycolmap = import_pycolmap()  # after PIL (see cdcgs/io/colmap.py)
 
     root = os.fspath(root)
     poses, intrinsics = orbit_cameras(views, width, height)

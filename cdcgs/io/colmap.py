@@ -20,6 +20,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError, OptionError
+from ._pycolmap import import_pycolmap
 from .views import View, check_intrinsics, random_points_in_frustums, report_missing
 
 __all__ = ["check_model_files", "find_model_dir", "read_colmap", "read_reconstruction", "undistorted_scene"]
@@ -87,7 +88,7 @@ def check_model_files(model_dir: str) -> int | None:
 
 
 def read_reconstruction(model_dir: str):
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     check_model_files(model_dir)
     try:
@@ -138,7 +139,7 @@ def undistorted_scene(root: str, model_dir: str, reconstruction, image_dir: str)
     ``root/.cdcgs_cache/undistorted_<folder>`` (or ``~/.cache/cdcgs`` for read-only scenes) and
     rebuilt when the model files or the folder change.
     """
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     folder_name = os.path.basename(os.path.normpath(image_dir))
     fingerprint = _fingerprint(model_dir, image_dir)

@@ -18,6 +18,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError
+from ._pycolmap import import_pycolmap
 from .views import View, check_intrinsics, random_points_in_frustums, report_missing
 
 __all__ = ["read_transforms"]
@@ -103,7 +104,7 @@ def _read_point_cloud(json_path: str, ply_path: str):
 
 def read_transforms(json_path: str, factor: int = 1, skip_missing: bool = False):
     """Views, initial points [P, 3] float32, colours [P, 3] uint8 and notes of a transforms.json scene."""
-    import pycolmap
+    pycolmap = import_pycolmap()
 
     base = os.path.dirname(os.path.abspath(json_path))
     try:

@@ -19,6 +19,7 @@ import torch
 from PIL import Image
 
 from ..errors import InputError, OptionError
+from ._pycolmap import import_pycolmap
 
 log = logging.getLogger("cdcgs")
 
@@ -123,7 +124,7 @@ def _read_image(view: View) -> np.ndarray:
         with Image.open(path) as im:
             im = im.convert("RGB")
             if view.undistort_camera is not None:
-                import pycolmap
+                pycolmap = import_pycolmap()
 
                 bitmap = pycolmap.Bitmap.from_array(np.asarray(im, dtype=np.uint8))
                 undistorted, _ = pycolmap.undistort_image(

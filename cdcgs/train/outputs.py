@@ -115,8 +115,15 @@ def view_stem(name: str) -> str:
 
 
 def write_json(path: str, data, indent: int | None = 2) -> None:
-    with open(path, "w") as f:
-        json.dump(data, f, indent=indent)
+    """Write ``data`` as JSON to ``path`` atomically: an interrupted write leaves the old file."""
+    tmp = f"{path}.tmp-{os.getpid()}"
+    try:
+        with open(tmp, "w") as f:
+            json.dump(data, f, indent=indent)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 @dataclass

@@ -61,6 +61,9 @@ class Strategy(Protocol):
     - ``after_backward(ctx, state) -> dict``: after ``backward()``, before the optimizer step:
       accumulate statistics in ``state`` and change the Gaussians (via :mod:`cdcgs.train.ops`);
       returns numbers worth logging (empty most iterations).
+    - ``refines_at(step) -> bool``: whether ``after_backward`` may change the set of Gaussians or
+      their values at iteration ``step`` (the trainer checks the run's numbers first, so that no
+      strategy works on NaN).
     - ``config() -> dict``: the name and hyperparameters, for config.json and metrics.json.
     - ``complexity_maps_method``: the method (cdcgs.complexity.METHODS) of the complexity maps
       that the hooks read from ``ctx.complexity_maps``, or None when they read none.
@@ -73,6 +76,8 @@ class Strategy(Protocol):
     def before_backward(self, ctx: StepContext, state: dict) -> None: ...
 
     def after_backward(self, ctx: StepContext, state: dict) -> dict: ...
+
+    def refines_at(self, step: int) -> bool: ...
 
     def config(self) -> dict: ...
 
@@ -175,6 +180,11 @@ class ADC:
             ops.reset_opacity(ctx.model, ctx.optimizer, self.reset_value)
             log["opacity_reset"] = 1
         return log
+
+    def refines_at(self, step: int) -> bool:
+        if step > self.densify_until:
+            return False
+        return (step > self.densify_from and step % self.densify_every == 0) or step % self.reset_every == 0
 
     # --- pieces (CDC-GS builds on these) ------------------------------------------------------
 

@@ -8,16 +8,13 @@ All of it goes into the checkpoint and comes back on resume.
 from __future__ import annotations
 
 import logging
-import math
 import os
-import signal
-import threading
 import time
 
 import torch
 
 from ..complexity import ComplexityMaps
-from ..errors import InputError, OptionError
+from ..errors import InputError, NonFiniteError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
 from ..render import prepare_camera, rasterize
@@ -25,23 +22,21 @@ from . import outputs
 from .cdc import CDC
 from .config import TrainConfig, background_color, config_to_dict
 from .evaluate import evaluate, lpips_metric
+from .guard import NumericGuard, TrainingDiverged
+from .interrupt import Interrupted, StopSignals
 from .loss import photometric_loss, psnr
 from .model import GaussianModel
 from .ops import make_optimizer
 from .schedules import position_lr
 from .strategy import StepContext
 
-__all__ = ["CHECKPOINT_FORMAT", "Trainer", "TrainingDiverged", "resolve_device"]
+__all__ = ["CHECKPOINT_FORMAT", "Interrupted", "Trainer", "TrainingDiverged", "resolve_device"]
 
 log = logging.getLogger("cdcgs")
 
 # Version of the checkpoint layout. 1: written before the restructure (global RNG states, the
 # viewer's options in the configuration, `adc`); 2: the trainer's generators only.
 CHECKPOINT_FORMAT = 2
-
-
-class TrainingDiverged(RuntimeError):
-    """The loss became NaN or infinite; the last good state was written to the checkpoint."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -108,7 +103,8 @@ class Trainer:
         self.device = resolve_device(config.device)
         self.out = config.out
         self.checkpoint_path = os.path.join(self.out, outputs.CHECKPOINT)
-        self._interrupted = False  # set by Ctrl-C during run(), read after each whole step
+        self.signals = StopSignals()
+        self.saved_step: int | None = None  # the iteration of the newest checkpoint in the folder
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -175,6 +171,7 @@ class Trainer:
             self.view_queue: list[int] = []
             self.history = {"step": [], "loss": [], "psnr": [], "gaussians": [], "eval": [], "strategy": []}
             self.train_seconds = 0.0
+            self.guard = NumericGuard(self.device)
         else:
             self.model = GaussianModel.from_state_dict(resume_state["model"], device=self.device)
             self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent)
@@ -188,6 +185,8 @@ class Trainer:
             self.train_seconds = resume_state["train_seconds"]
             self.generator.set_state(resume_state["generator"])
             self.view_generator.set_state(resume_state["view_generator"])
+            self.guard = NumericGuard(self.device, resume_state.get("guard"))
+            self.saved_step = self.step
         fixed = background_color(config.background)
         self.background = torch.tensor(fixed or (0.0, 0.0, 0.0), device=self.device)
         self.lpips = lpips_metric(self.device)
@@ -245,15 +244,37 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "generator": self.generator.get_state(),
             "view_generator": self.view_generator.get_state(),
+            "guard": self.guard.state_dict(),
             "config": config_to_dict(self.config),
         }
 
     def save(self, ply: bool = True) -> None:
-        save_checkpoint(self.checkpoint_path, self.state_dict())
-        if ply:
-            write_ply(os.path.join(self.out, outputs.PLY), self.model.to_ply())
+        """Write the checkpoint (and the PLY), after the numeric guard's check: a state with
+        non-finite numbers is never written. The first signal does not cut a save."""
+        self.check_numbers(params=True)
+        with self.signals.deferred():
+            save_checkpoint(self.checkpoint_path, self.state_dict())
+            self.saved_step = self.step
+            if ply:
+                write_ply(os.path.join(self.out, outputs.PLY), self.model.to_ply())
+
+    def check_numbers(self, params: bool = False) -> None:
+        """The numeric guard's check (a host synchronisation); raises TrainingDiverged."""
+        self.guard.check(self.step, self.optimizer, self.model.params if params else None, self._last_good())
+
+    def _last_good(self) -> str:
+        if self.saved_step is None:
+            return (
+                "No checkpoint had been written yet, so there is no good state to resume "
+                "(--checkpoint-every sets how often one is written)."
+            )
+        return (
+            f"The last good state, iteration {self.saved_step}, is in {self.checkpoint_path}: "
+            "--resume continues from it (the learning rate options may change)."
+        )
 
     def _evaluate(self, final: bool) -> dict:
+        self.check_numbers(params=True)
         save_dir = os.path.join(self.out, "test_renders") if (final and self.config.save_renders) else None
         metrics = evaluate(
             self.model,
@@ -269,7 +290,10 @@ class Trainer:
 
     # -------------------------------------------------------------------------------- loop
 
-    def train_step(self) -> tuple[float, float, dict]:
+    def train_step(self) -> dict:
+        """One iteration: render, loss, backward, the strategy's hooks, the optimizer step. Reads
+        nothing back from the device itself (the render reads its intersection count) except
+        where the strategy is about to change the Gaussians; returns the strategy's log."""
         config = self.config
         self.step += 1
         step = self.step
@@ -280,7 +304,15 @@ class Trainer:
             self.model.sh_degree += 1
         view_index = self._next_view()
         view = self.scene.train[view_index]
-        image, _, info = self._render(view_index, self._step_background())
+        try:
+            image, _, info = self._render(view_index, self._step_background())
+        except NonFiniteError as err:
+            # The parameters went bad in an earlier iteration: the guard's records say when.
+            self.step -= 1
+            self.check_numbers(params=True)
+            raise self.guard.diverged(
+                step, self.optimizer, f"the render found NaN or infinite values in {err.name}", self._last_good()
+            ) from None
         target = view.image.float() / 255.0
         loss = photometric_loss(image, target, config.ssim_weight)
         ctx = StepContext(
@@ -298,32 +330,30 @@ class Trainer:
         )
         self.strategy.before_backward(ctx, self.strategy_state)
         loss.backward()
-        loss_value, psnr_value = torch.stack([loss.detach(), psnr(image.detach(), target)]).tolist()
-        if not math.isfinite(loss_value):
-            self.step -= 1
-            self.optimizer.zero_grad(set_to_none=True)
-            save_checkpoint(self.checkpoint_path, self.state_dict())
-            raise TrainingDiverged(
-                f"the loss became {loss_value} at iteration {step}; training stopped before the optimizer step. "
-                f"The last good state (iteration {self.step}) is in {self.checkpoint_path}"
-            )
+        grads = [p.grad for p in self.model.params.values() if p.grad is not None]
+        self.guard.record(step, loss, psnr(image.detach(), target), grads)
+        if self.strategy.refines_at(step):
+            self.check_numbers()
         strategy_log = self.strategy.after_backward(ctx, self.strategy_state)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        return loss_value, psnr_value, strategy_log
+        return strategy_log
 
     def run(self) -> dict:
         """Train to ``config.iters`` (from the checkpoint with ``resume``), evaluate, write outputs.
 
         The run folder is locked meanwhile (:class:`cdcgs.train.outputs.RunLock`); a folder this
         call created is removed again when the run fails before writing anything into it.
+        SIGINT and SIGTERM end the run with :class:`Interrupted` (see :mod:`cdcgs.train.interrupt`):
+        the first, during the training loop, after a whole iteration and with a checkpoint of it;
+        elsewhere, or a second one, at once and writing nothing more.
         """
         if os.path.exists(self.out) and not os.path.isdir(self.out):
             raise InputError(self.out, "--out names a file, not a folder")
         created = not os.path.exists(self.out)
         os.makedirs(self.out, exist_ok=True)
         try:
-            with outputs.RunLock(self.out) as lock:
+            with self.signals, outputs.RunLock(self.out) as lock:
                 if lock.stale:
                     log.warning(
                         "%s: took over the lock of a training that is gone (pid %s on %s, started %s)",
@@ -333,10 +363,26 @@ class Trainer:
                         lock.stale.get("started"),
                     )
                 return self._run()
-        except BaseException:
+        except BaseException as err:
+            if isinstance(err, Interrupted):
+                self._report_stop(err)
             if created and os.path.isdir(self.out) and not os.listdir(self.out):
                 os.rmdir(self.out)
             raise
+
+    def _report_stop(self, stop: Interrupted) -> None:
+        if stop.clean:
+            print(
+                f"stopped by {stop} at iteration {self.saved_step}: checkpoint and PLY written to {self.out} "
+                "(continue with --resume)"
+            )
+        elif self.saved_step is not None:
+            print(
+                f"stopped at once by {stop}: nothing more written; the checkpoint in {self.out} holds iteration "
+                f"{self.saved_step} (continue with --resume)"
+            )
+        else:
+            print(f"stopped at once by {stop}: no checkpoint was written")
 
     def _run(self) -> dict:
         self._setup()
@@ -346,92 +392,65 @@ class Trainer:
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)
         started = []
-        restore_sigint = self._catch_sigint()
         bar = tqdm(total=config.iters, initial=self.step, disable=not config.progress, unit="it", dynamic_ncols=True)
-        smoothed_loss = smoothed_psnr = None
         try:
             for callback in self.callbacks:
                 callback.on_start(self)
                 started.append(callback)
-            while self.step < config.iters:
-                start = time.perf_counter()
-                loss_value, psnr_value, strategy_log = self.train_step()
-                self.train_seconds += time.perf_counter() - start
-                for callback in self.callbacks:
-                    callback.on_step(self)
-                if self._interrupted:
-                    raise KeyboardInterrupt
-                smoothed_loss = loss_value if smoothed_loss is None else 0.9 * smoothed_loss + 0.1 * loss_value
-                smoothed_psnr = psnr_value if smoothed_psnr is None else 0.9 * smoothed_psnr + 0.1 * psnr_value
-                if strategy_log:
-                    self.history["strategy"].append({"step": self.step, **strategy_log})
-                if self.step % config.log_every == 0 or self.step == config.iters:
-                    for key, value in (
-                        ("step", self.step),
-                        ("loss", smoothed_loss),
-                        ("psnr", smoothed_psnr),
-                        ("gaussians", self.model.num),
-                    ):
-                        self.history[key].append(value)
-                if self.step % 10 == 0 or self.step == config.iters:
-                    bar.set_postfix(
-                        loss=f"{smoothed_loss:.4f}",
-                        psnr=f"{smoothed_psnr:.2f}",
-                        gaussians=self.model.num,
-                        refresh=False,
-                    )
-                bar.update(1)
-                if not config.progress and (self.step % 1000 == 0 or self.step == config.iters):
-                    print(
-                        f"[{self.step}/{config.iters}] loss {smoothed_loss:.4f}, PSNR {smoothed_psnr:.2f} dB, "
-                        f"{self.model.num} Gaussians, {self.step / max(self.train_seconds, 1e-9):.1f} it/s",
-                        flush=True,
-                    )
-                if (
-                    config.eval_every
-                    and self.step % config.eval_every == 0
-                    and self.step < config.iters
-                    and self.scene.test
-                ):
-                    metrics = self._evaluate(final=False)
-                    bar.write(
-                        f"[{self.step}] test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {self.model.num} Gaussians"
-                    )
-                if config.checkpoint_every and self.step % config.checkpoint_every == 0 and self.step < config.iters:
-                    self.save(ply=False)
-        except KeyboardInterrupt:
+            with self.signals.deferred():
+                while self.step < config.iters:
+                    self._iteration(bar)
+                    self.signals.raise_pending()
+        except Interrupted as stop:
             bar.close()
-            self.save()
-            print(
-                f"interrupted at iteration {self.step}: checkpoint and PLY written to {self.out} (continue with --resume)"
-            )
+            if stop.clean:
+                self.save()
             raise
         finally:
-            restore_sigint()
             for callback in reversed(started):
                 callback.on_end(self)
         bar.close()
         return self.finish()
 
-    def _catch_sigint(self):
-        """Turn Ctrl-C (SIGINT) into a flag that the loop reads after a whole step, so that the
-        interrupt checkpoint holds every update it counts and no interrupt is lost inside a
-        destructor; a second Ctrl-C stops at once. Only from the main thread (where Python
-        delivers signals); returns the function that puts the previous handler back."""
-        self._interrupted = False
-        if threading.current_thread() is not threading.main_thread():
-            return lambda: None
-
-        def handler(signum, frame):
-            if self._interrupted:
-                raise KeyboardInterrupt
-            self._interrupted = True
-
-        previous = signal.signal(signal.SIGINT, handler)
-        return lambda: signal.signal(signal.SIGINT, previous)
+    def _iteration(self, bar) -> None:
+        """One training iteration and what follows it: callbacks, logs, evaluation, checkpoint."""
+        config = self.config
+        start = time.perf_counter()
+        strategy_log = self.train_step()
+        self.train_seconds += time.perf_counter() - start
+        for callback in self.callbacks:
+            callback.on_step(self)
+        if strategy_log:
+            self.history["strategy"].append({"step": self.step, **strategy_log})
+        step, last = self.step, self.step == config.iters
+        report = not config.progress and (step % 1000 == 0 or last)
+        if step % config.log_every == 0 or last or report:
+            self.check_numbers()  # where the running means are read anyway: one host synchronisation
+            loss, psnr_value = self.guard.means()
+            if step % config.log_every == 0 or last:
+                for key, value in (("step", step), ("loss", loss), ("psnr", psnr_value), ("gaussians", self.model.num)):
+                    self.history[key].append(value)
+            bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr_value:.2f}", gaussians=self.model.num, refresh=False)
+            if report:
+                print(
+                    f"[{step}/{config.iters}] loss {loss:.4f}, PSNR {psnr_value:.2f} dB, "
+                    f"{self.model.num} Gaussians, {step / max(self.train_seconds, 1e-9):.1f} it/s",
+                    flush=True,
+                )
+        bar.update(1)
+        if config.eval_every and step % config.eval_every == 0 and not last and self.scene.test:
+            self.signals.raise_pending()  # a signal during the iteration: stop before a long evaluation
+            metrics = self._evaluate(final=False)
+            bar.write(
+                f"[{step}] test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {self.model.num} Gaussians"
+            )
+        if config.checkpoint_every and step % config.checkpoint_every == 0 and not last:
+            self.signals.raise_pending()  # the interrupt's checkpoint is this one, with the PLY
+            self.save(ply=False)
 
     def finish(self) -> dict:
         self.save()
+        self.signals.raise_pending()  # a signal during that save: the run is saved, stop here
         metrics = self._evaluate(final=True) if self.scene.test else {"views": 0}
         peak = torch.cuda.max_memory_allocated(self.device) / 1e9 if self.device.type == "cuda" else None
         result = {
