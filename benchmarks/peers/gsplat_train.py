@@ -240,6 +240,8 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
             sh=sh,
         ),
     )
+    cuda = device.type == "cuda"
+    peak = torch.cuda.max_memory_allocated(device) / 1e9 if cuda else None  # training only, as cdcgs reports it
     metrics = {"views": 0}
     if scene.test:
         metrics = evaluate_with(render, params, scene.test, sh_degree_at(args.iters - 1), device)
@@ -250,7 +252,7 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
         "iterations": args.iters,
         "train_seconds": train_seconds,
         "iterations_per_second": args.iters / max(train_seconds, 1e-9),
-        "peak_gpu_memory_gb": torch.cuda.max_memory_allocated(device) / 1e9 if device.type == "cuda" else None,
+        "peak_gpu_memory_gb": peak,
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "strategy": {"name": f"gsplat {api.version} DefaultStrategy", **dataclasses.asdict(strategy)},
         "protocol": {

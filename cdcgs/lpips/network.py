@@ -9,10 +9,12 @@ over the tap's pixels, and the five averages are summed.
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
 
-__all__ = ["ALEX_LAYERS", "LPIPS", "NETS", "SCALE", "SHIFT", "VGG_LAYERS"]
+__all__ = ["ALEX_LAYERS", "LPIPS", "NETS", "SCALE", "SHIFT", "VGG_LAYERS", "full_float32"]
 
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
@@ -44,6 +46,19 @@ def _vgg_layers() -> tuple:
 
 VGG_LAYERS = _vgg_layers()
 NETS = {"vgg": VGG_LAYERS, "alex": ALEX_LAYERS}
+
+
+@contextlib.contextmanager
+def full_float32():
+    """Convolutions and matrix products in full float32, not TF32 (which cuDNN uses by default on
+    Ampere and newer GPUs, and which moves LPIPS scores by up to 1e-4): the scores are then the
+    same on every GPU and on the CPU, to about 1e-6."""
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
 
 
 class LPIPS(nn.Module):
@@ -96,6 +111,10 @@ class LPIPS(nn.Module):
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         self._check(a, b)
+        with full_float32():
+            return self._distance(a, b)
+
+    def _distance(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         features = self.features(torch.cat([a, b]) * 2.0 - 1.0)
         total = 0.0
         for feature, head in zip(features, self.heads):

@@ -273,8 +273,16 @@ class Trainer:
             "--resume continues from it (the learning rate options may change)."
         )
 
+    def _peak_memory(self, part: str) -> None:
+        """Add the peak GPU memory since the last call to ``part`` ("train" or "eval")."""
+        if self.device.type == "cuda":
+            peak = torch.cuda.max_memory_allocated(self.device)
+            self.peak_memory[part] = max(self.peak_memory[part], peak)
+            torch.cuda.reset_peak_memory_stats(self.device)
+
     def _evaluate(self, final: bool) -> dict:
         self.check_numbers(params=True)
+        self._peak_memory("train")  # the LPIPS networks' activations are not the training's memory
         save_dir = os.path.join(self.out, "test_renders") if (final and self.config.save_renders) else None
         metrics = evaluate(
             self.model,
@@ -284,6 +292,7 @@ class Trainer:
             save_dir=save_dir,
             lpips=self.lpips,
         )
+        self._peak_memory("eval")
         summary = {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_vgg", "lpips_alex", "num_gaussians")}
         self.history["eval"].append({"step": self.step, **summary})
         return metrics
@@ -391,6 +400,7 @@ class Trainer:
 
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)
+        self.peak_memory = {"train": 0, "eval": 0}  # bytes, of this process; evaluations apart
         started = []
         bar = tqdm(total=config.iters, initial=self.step, disable=not config.progress, unit="it", dynamic_ncols=True)
         try:
@@ -451,8 +461,9 @@ class Trainer:
     def finish(self) -> dict:
         self.save()
         self.signals.raise_pending()  # a signal during that save: the run is saved, stop here
+        self._peak_memory("train")
         metrics = self._evaluate(final=True) if self.scene.test else {"views": 0}
-        peak = torch.cuda.max_memory_allocated(self.device) / 1e9 if self.device.type == "cuda" else None
+        cuda = self.device.type == "cuda"
         result = {
             "test": {k: v for k, v in metrics.items() if k != "per_view"},
             "per_view": metrics.get("per_view", []),
@@ -460,7 +471,8 @@ class Trainer:
             "iterations": self.step,
             "train_seconds": self.train_seconds,
             "iterations_per_second": self.step / max(self.train_seconds, 1e-9),
-            "peak_gpu_memory_gb": peak,
+            "peak_gpu_memory_gb": self.peak_memory["train"] / 1e9 if cuda else None,
+            "peak_gpu_memory_eval_gb": self.peak_memory["eval"] / 1e9 if cuda and self.scene.test else None,
             "device": torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu",
             "strategy": self.strategy.config(),
         }
