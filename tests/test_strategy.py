@@ -10,6 +10,7 @@ from helpers import context, fake_info, hand_model, moments
 from cdcgs.train import ops
 from cdcgs.train.cdc import CDC
 from cdcgs.train.config import LearningRates
+from cdcgs.train.presets import PRESETS
 from cdcgs.train.schedules import position_lr
 from cdcgs.train.strategy import ADC
 
@@ -208,3 +209,33 @@ def test_relocate_moves_parameters_and_restarts_their_moments():
         torch.testing.assert_close(m, torch.tensor([0.0, 0.0, 0.0, 4.0, 5.0, 0.0]))
     with pytest.raises(ValueError, match="no parameters"):
         ops.relocate(model, optimizer, torch.tensor([0]), torch.tensor([1]), {"colour": torch.zeros(1)})
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_every_preset_fires_its_events_at_the_steps_of_the_inria_code(name):
+    """Iterations from 1, strict `iteration < densify_until_iter` (INRIA's train.py, the CDC-GS code)."""
+    strategy = CDC.from_preset(name)
+    steps = range(1, 30_001)
+    assert [t for t in steps if strategy.densifies_at(t)] == list(range(600, 15_000, 100))
+    assert [t for t in steps if strategy.resets_at(t)] == [3000, 6000, 9000, 12000]
+    assert [t for t in steps if strategy.accumulates_at(t)] == list(range(1, 15_000))
+    prunes = [t for t in steps if strategy.periodic_prunes_at(t)]
+    assert prunes == ([3000, 6000, 9000, 12000] if strategy.periodic_prune else [])
+    assert [t for t in steps if strategy.refines_at(t)] == list(range(600, 15_000, 100))
+
+
+def test_the_hooks_follow_the_schedule_at_its_edges():
+    model, optimizer = hand_model()
+    strategy = ADC()
+    fired = []
+    strategy.densify_and_prune = lambda ctx, state: fired.append(ctx.step) or {}
+    state = strategy.initialize_state(model)
+    info = lambda: fake_info(torch.zeros(model.num, 2), torch.ones(model.num, dtype=torch.bool), torch.ones(model.num))
+    resets = []
+    for step in (500, 600, 3000, 12000, 14900, 14999, 15000, 15100, 18000):
+        if "opacity_reset" in strategy.after_backward(context(model, optimizer, info(), step), state):
+            resets.append(step)
+    assert fired == [600, 3000, 12000, 14900] and resets == [3000, 12000]
+    counted = state["count"].clone()
+    strategy.after_backward(context(model, optimizer, info(), 15000), state)
+    assert torch.equal(state["count"], counted), "no statistics at iteration 15000"

@@ -174,7 +174,7 @@ class CDC(ADC):
     # --- hooks --------------------------------------------------------------------------------
 
     def after_backward(self, ctx: StepContext, state: dict) -> dict:
-        if self.needs_complexity and self.complexity_schedule == "online" and ctx.step <= self.densify_until:
+        if self.needs_complexity and self.complexity_schedule == "online" and self.accumulates_at(ctx.step):
             with torch.no_grad():
                 accumulator = ViewComplexity.from_state(state["gamma"], state["gamma_views"], **self._aggregation())
                 accumulator.add(ctx.info, ctx.complexity_maps[ctx.view_index])
@@ -234,12 +234,17 @@ class CDC(ADC):
         else:
             selected_by_gradient = mean_grad >= self.grad_threshold
         clone, split = self.grow_masks(ctx, state, selected_by_gradient)
-        if self.periodic_prune and ctx.step % self.periodic_prune_every == 0:
+        if self.periodic_prunes_at(ctx.step):
             # Runs in the densification step, before the opacity reset of the same iteration.
             prune_extra |= model.opacities().detach() < self.periodic_prune_opacity
             log["periodic_prune"] = int((model.opacities().detach() < self.periodic_prune_opacity).sum())
         log.update(self.apply(ctx, state, clone, split, prune_extra))
         return log
+
+    def periodic_prunes_at(self, step: int) -> bool:
+        """Whether iteration ``step`` runs the periodic prune: a densification step that is a
+        multiple of ``periodic_prune_every`` (3000, 6000, 9000, 12000 by default)."""
+        return self.periodic_prune and self.densifies_at(step) and step % self.periodic_prune_every == 0
 
     def prune_mask(self, ctx: StepContext, max_radius: torch.Tensor) -> torch.Tensor:
         if self.periodic_prune:

@@ -87,12 +87,15 @@ class ADC:
     """3DGS adaptive density control (Kerbl et al. 2023), with the AbsGS variant as an option.
 
     Accumulates the norm of each Gaussian's screen-space positional gradient (NDC units) over the
-    views that saw it. Every ``densify_every`` steps in (densify_from, densify_until]: Gaussians
+    views that saw it. Every ``densify_every`` steps after ``densify_from`` and before
+    ``densify_until`` (iterations count from 1, and the end is excluded, as in the INRIA code: 600,
+    700, ..., 14900 by default; :meth:`densifies_at`): Gaussians
     whose mean gradient reaches ``grad_threshold`` are cloned when small (max scale <=
     ``clone_max_scale`` x extent) and split into ``split_count`` when large; Gaussians with opacity
     below ``prune_opacity`` are removed, and after the first opacity reset also those larger than
     ``prune_world_size`` x extent (and than ``prune_screen_size`` px when that is set). Opacities
-    are reset to ``reset_value`` every ``reset_every`` steps.
+    are reset to ``reset_value`` every ``reset_every`` steps before ``densify_until`` (3000, ...,
+    12000; :meth:`resets_at`).
 
     The 3DGS paper also prunes Gaussians over 20 px on screen, but its code zeroes the screen radii
     (``densification_postfix``) before that test, so the rule never fires; its authors confirm the
@@ -109,7 +112,7 @@ class ADC:
     )
     densify_from: int = strategy_option(500, "first densification after this iteration", low=0)
     densify_until: int = strategy_option(
-        15_000, "densify, reset opacity and accumulate statistics up to this iteration", low=0
+        15_000, "densify, reset opacity and accumulate statistics before this iteration (not at it)", low=0
     )
     densify_every: int = strategy_option(100, "iterations between densification steps", low=1)
     reset_every: int = strategy_option(3000, "iterations between opacity resets", low=1)
@@ -164,7 +167,7 @@ class ADC:
     # --- hooks -------------------------------------------------------------------------------
 
     def before_backward(self, ctx: StepContext, state: dict) -> None:
-        if ctx.step <= self.densify_until:
+        if self.accumulates_at(ctx.step):
             if self.absgrad:
                 ctx.info.retain_absgrad()
             else:
@@ -172,19 +175,31 @@ class ADC:
 
     def after_backward(self, ctx: StepContext, state: dict) -> dict:
         log = {}
-        if ctx.step <= self.densify_until:
+        if self.accumulates_at(ctx.step):
             self.accumulate(ctx, state)
-            if ctx.step > self.densify_from and ctx.step % self.densify_every == 0:
-                log.update(self.densify_and_prune(ctx, state))
-        if ctx.step % self.reset_every == 0 and ctx.step <= self.densify_until:
+        if self.densifies_at(ctx.step):
+            log.update(self.densify_and_prune(ctx, state))
+        if self.resets_at(ctx.step):
             ops.reset_opacity(ctx.model, ctx.optimizer, self.reset_value)
             log["opacity_reset"] = 1
         return log
 
     def refines_at(self, step: int) -> bool:
-        if step > self.densify_until:
-            return False
-        return (step > self.densify_from and step % self.densify_every == 0) or step % self.reset_every == 0
+        return self.densifies_at(step) or self.resets_at(step)
+
+    # --- the schedule (iterations from 1; every test strict, as in the INRIA code) --------------
+
+    def accumulates_at(self, step: int) -> bool:
+        """Whether iteration ``step`` adds to the gradient statistics."""
+        return step < self.densify_until
+
+    def densifies_at(self, step: int) -> bool:
+        """Whether iteration ``step`` densifies and prunes (600, 700, ..., 14900 by default)."""
+        return self.densify_from < step < self.densify_until and step % self.densify_every == 0
+
+    def resets_at(self, step: int) -> bool:
+        """Whether iteration ``step`` resets the opacities (3000, 6000, 9000, 12000 by default)."""
+        return step < self.densify_until and step % self.reset_every == 0
 
     # --- pieces (CDC-GS builds on these) ------------------------------------------------------
 
