@@ -316,12 +316,11 @@ class Trainer:
         try:
             image, _, info = self._render(view_index, self._step_background())
         except NonFiniteError as err:
-            # The parameters went bad in an earlier iteration: the guard's records say when.
+            # The render checks the parameters it reads: the last update made them non-finite.
             self.step -= 1
-            self.check_numbers(params=True)
-            raise self.guard.diverged(
-                step, self.optimizer, f"the render found NaN or infinite values in {err.name}", self._last_good()
-            ) from None
+            bad = [name for name, p in self.model.params.items() if not torch.isfinite(p).all()] or [err.name]
+            cause = f"the update of iteration {self.step} made {', '.join(bad)} NaN or infinite"
+            raise self.guard.diverged(self.step, self.optimizer, cause, self._last_good()) from None
         target = view.image.float() / 255.0
         loss = photometric_loss(image, target, config.ssim_weight)
         ctx = StepContext(
@@ -339,8 +338,7 @@ class Trainer:
         )
         self.strategy.before_backward(ctx, self.strategy_state)
         loss.backward()
-        grads = [p.grad for p in self.model.params.values() if p.grad is not None]
-        self.guard.record(step, loss, psnr(image.detach(), target), grads)
+        self.guard.record(loss, psnr(image.detach(), target))
         if self.strategy.refines_at(step):
             self.check_numbers()
         strategy_log = self.strategy.after_backward(ctx, self.strategy_state)
