@@ -271,3 +271,13 @@ def test_the_numbers_are_read_only_at_log_steps_refinements_saves_and_evaluation
     Trainer(tiny_config(tiny_scene, tmp_path, iters=40, log_every=10), SHORT).run()
     # log steps 10, 20, 30, 40; the densification of 40; the final checkpoint and evaluation.
     assert steps == [10, 20, 30, 40, 40, 40, 40]
+
+
+def test_a_signal_while_the_scene_loads_stops_at_once_and_leaves_nothing(tiny_scene, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "run"
+    send_during(monkeypatch, trainer_module, "load_scene", signal.SIGTERM)
+    with pytest.raises(Interrupted) as stop:
+        Trainer(config(tiny_scene, out), OPTIONS).run()
+    assert not stop.value.clean and stop.value.exit_status == 143
+    assert "stopped at once by SIGTERM: no checkpoint was written" in capsys.readouterr().out
+    assert not out.exists(), "the folder this run created, still empty, is removed (lock included)"

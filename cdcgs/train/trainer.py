@@ -105,6 +105,7 @@ class Trainer:
         self.checkpoint_path = os.path.join(self.out, outputs.CHECKPOINT)
         self.signals = StopSignals()
         self.saved_step: int | None = None  # the iteration of the newest checkpoint in the folder
+        self.peak_memory = {"train": 0, "eval": 0}  # bytes, of this process; evaluations apart
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -398,7 +399,6 @@ class Trainer:
 
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)
-        self.peak_memory = {"train": 0, "eval": 0}  # bytes, of this process; evaluations apart
         started = []
         bar = tqdm(total=config.iters, initial=self.step, disable=not config.progress, unit="it", dynamic_ncols=True)
         try:
@@ -459,7 +459,6 @@ class Trainer:
     def finish(self) -> dict:
         self.save()
         self.signals.raise_pending()  # a signal during that save: the run is saved, stop here
-        self._peak_memory("train")
         metrics = self._evaluate(final=True) if self.scene.test else {"views": 0}
         cuda = self.device.type == "cuda"
         result = {
