@@ -117,7 +117,6 @@ def _preset_defaults(f, presets: dict) -> str:
 
 
 def _add_train_parser(sub):
-    from .train.cdc import CDC
     from .train.config import TrainConfig
 
     p = sub.add_parser("train", help="train a scene", description="Train 3D Gaussians on a scene.")
@@ -141,24 +140,22 @@ def _add_train_parser(sub):
     )
     group = p.add_argument_group("strategy options", "override the chosen preset's hyperparameters (docs/cdc-gs.md)")
     from .train.presets import PRESETS
+    from .train.strategies import strategy_fields
 
-    hints = typing.get_type_hints(CDC)
-    for f in sorted(CDC.options(), key=lambda f: f.name):
-        _add_field(
-            group,
-            f,
-            hints[f.name],
-            prefix="",
-            dest=STRATEGY_PREFIX + f.name,
-            default=None,
-            default_text=_preset_defaults(f, PRESETS),
-        )
+    for f, hint, presets in strategy_fields():
+        default_text = _preset_defaults(f, {name: PRESETS[name] for name in presets})
+        lacking = [name for name in PRESETS if name not in presets]
+        if lacking:
+            default_text += (
+                f"; only {', '.join(presets)}" if len(presets) <= len(lacking) else f"; not {', '.join(lacking)}"
+            )
+        _add_field(group, f, hint, prefix="", dest=STRATEGY_PREFIX + f.name, default=None, default_text=default_text)
     p.set_defaults(func=cmd_train)
 
 
 def cmd_train(args) -> int:
-    from .train.cdc import CDC
     from .train.config import TrainConfig
+    from .train.strategies import make_strategy
     from .train.trainer import Trainer, TrainingDiverged, resolve_device
 
     values = vars(args)
@@ -168,7 +165,7 @@ def cmd_train(args) -> int:
     options = {
         k[len(STRATEGY_PREFIX) :]: v for k, v in values.items() if k.startswith(STRATEGY_PREFIX) and v is not None
     }
-    CDC.from_preset(config.strategy, options)  # refuse bad options before the scene loads
+    make_strategy(config.strategy, options)  # refuse bad options before the scene loads
     resolve_device(config.device)
     callbacks = []
     if args.view:
@@ -450,8 +447,27 @@ def cmd_compare(args) -> int:
             )
         histories[f"{config['train']['strategy']} ({os.path.basename(os.path.normpath(out))})"] = history
     plot_correlation(histories, args.out)
+    print(correlation_table(histories))
     print(f"wrote {args.out}")
     return 0
+
+
+def correlation_table(histories: dict) -> str:
+    """A markdown table of each run's statistics at its last densification step, and Pearson's
+    r at its first, middle and last."""
+    from .train.outputs import CORRELATION_KEYS, correlation_curve
+
+    header = ["run", "steps", "r first / middle / last", *list(CORRELATION_KEYS.values())[1:]]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for label, history in histories.items():
+        steps, pearson = correlation_curve(history)
+        picks = " / ".join(f"{pearson[i]:.2f}" for i in (0, len(pearson) // 2, -1))
+        last = []
+        for key in list(CORRELATION_KEYS)[1:]:
+            values = correlation_curve(history, key)[1]
+            last.append(f"{values[-1]:.3f}" if values else "—")
+        lines.append(f"| {label} | {steps[0]}–{steps[-1]} | {picks} | " + " | ".join(last) + " |")
+    return "\n".join(lines)
 
 
 def build_parser() -> argparse.ArgumentParser:

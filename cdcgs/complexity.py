@@ -6,7 +6,9 @@ of the 2-D Haar DWT (ptwt), LL band zeroed, inverse DWT, absolute value, min-max
 (kornia) for the ablation. Kept as uint8 (x 255) on the training device.
 
 Gamma (section 2): per view, the max over the pixels a Gaussian composites of
-HF(p) * w_i(p) / w_max(p), computed by ``complexity_kernel`` (exact atomic max); across views the
+HF(p) * w_i(p) / w_max(p), computed by ``complexity_kernel`` (exact atomic max, or the CDC-GS
+code's racy one emulated for diagnosis), with w_max(p) the largest alpha over the pixel's tile
+list as the CDC-GS code has it, or the largest alpha * T as the paper's formula; across views the
 max (or the mean over the views that see it). :func:`complexity_over_views` is the one place that
 aggregates over views: the CDC-GS strategy, the viewer and the benchmarks call it.
 """
@@ -20,11 +22,12 @@ import warp as wp
 
 from ._interop import warp_scope, wp_array
 from .kernels._constants import BLOCK_SIZE
-from .kernels.blend import complexity_kernel
+from .kernels.blend import MAX_EXACT, MAX_RACY_KEEP, MAX_RACY_RANK, W_MAX_ALPHA, W_MAX_WEIGHT, complexity_kernel
 
 __all__ = [
     "AGGREGATIONS",
     "METHODS",
+    "W_MAX_RULES",
     "ComplexityMaps",
     "ViewComplexity",
     "complexity_map",
@@ -36,6 +39,7 @@ __all__ = [
 
 METHODS = ("dwt", "dwt2", "sobel", "scharr", "laplacian")
 AGGREGATIONS = ("max", "mean")
+W_MAX_RULES = ("alpha", "weight")
 LUMA = (0.299, 0.587, 0.114)
 
 
@@ -81,43 +85,62 @@ def complexity_map(image: torch.Tensor, method: str = "dwt") -> torch.Tensor:
 
 
 def gaussian_complexity(
-    info, hf_map: torch.Tensor, opacities: torch.Tensor | None = None
+    info,
+    hf_map: torch.Tensor,
+    opacities: torch.Tensor | None = None,
+    *,
+    w_max: str = "alpha",
+    racy_seed: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(max [N], sum [N], count [N] int32) over one render's pixels of HF * w / w_max per Gaussian.
 
     ``info`` is the RasterizeInfo of the render; ``hf_map`` its view's [H, W] uint8 map.
+    ``w_max`` (:data:`W_MAX_RULES`): "alpha", the largest alpha over the pixel's tile list (the
+    CDC-GS code), or "weight", the largest alpha * T (the paper's formula). ``racy_seed``: emulate
+    the CDC-GS code's racy per-Gaussian max (one pseudo-random contributing pixel per tile and
+    Gaussian instead of the largest; the seed picks which) for the max; None: exact.
     Gaussians that composite no pixel get max 0 and count 0.
     """
     if hf_map.shape != (info.height, info.width) or hf_map.dtype != torch.uint8:
         raise ValueError(
             f"hf_map must be a uint8 [{info.height}, {info.width}] map, got {hf_map.dtype} {list(hf_map.shape)}"
         )
+    if w_max not in W_MAX_RULES:
+        raise ValueError(f"w_max must be one of {', '.join(W_MAX_RULES)}, got {w_max!r}")
     n = info.means2d.shape[0]
     device = info.means2d.device
     opacities = info.opacities if opacities is None else opacities
     max_out = torch.zeros(n, device=device)
     sum_out = torch.zeros(n, device=device)
     count_out = torch.zeros(n, dtype=torch.int32, device=device)
+    racy = racy_seed is not None
+    keys = torch.full((info.sorted_gauss_ids.numel() if racy else 1,), -1, dtype=torch.int32, device=device)
     tiles_y, tiles_x = info.tiles_y, info.tiles_x
     with warp_scope(device):
-        wp.launch(
-            complexity_kernel,
-            tiles_x * tiles_y * BLOCK_SIZE,
-            inputs=[
-                wp_array(info.tile_ranges, wp.int32),
-                wp_array(info.sorted_gauss_ids, wp.int32),
-                wp_array(info.means2d.detach().contiguous(), wp.vec2),
-                wp_array(info.conics.detach().contiguous(), wp.vec3),
-                wp_array(opacities.detach().contiguous(), wp.float32),
-                wp_array(info.last_contributor, wp.int32),
-                wp_array(hf_map.to(device).contiguous(), wp.uint8),
-                info.width,
-                info.height,
-                tiles_x,
-            ],
-            outputs=[wp_array(max_out, wp.float32), wp_array(sum_out, wp.float32), wp_array(count_out, wp.int32)],
-            block_dim=BLOCK_SIZE,
-        )
+        inputs = [
+            wp_array(info.tile_ranges, wp.int32),
+            wp_array(info.sorted_gauss_ids, wp.int32),
+            wp_array(info.means2d.detach().contiguous(), wp.vec2),
+            wp_array(info.conics.detach().contiguous(), wp.vec3),
+            wp_array(opacities.detach().contiguous(), wp.float32),
+            wp_array(info.last_contributor, wp.int32),
+            wp_array(hf_map.to(device).contiguous(), wp.uint8),
+            info.width,
+            info.height,
+            tiles_x,
+            W_MAX_ALPHA if w_max == "alpha" else W_MAX_WEIGHT,
+        ]
+        outputs = [wp_array(max_out, wp.float32), wp_array(sum_out, wp.float32), wp_array(count_out, wp.int32)]
+        seed = 0 if racy_seed is None else int(racy_seed) % (2**23)
+        passes = (MAX_RACY_RANK, MAX_RACY_KEEP) if racy else (MAX_EXACT,)
+        for max_rule in passes:
+            wp.launch(
+                complexity_kernel,
+                tiles_x * tiles_y * BLOCK_SIZE,
+                inputs=[*inputs, max_rule, seed, wp_array(keys, wp.int32)],
+                outputs=outputs,
+                block_dim=BLOCK_SIZE,
+            )
     return max_out, sum_out, count_out
 
 
@@ -161,28 +184,47 @@ class ViewComplexity:
     """Γ [N] of every Gaussian aggregated over views, one render at a time.
 
     ``pixel_aggregation`` within a view: the max over its pixels of HF w / w_max, or their mean;
-    ``view_aggregation`` across views: the max, or the mean over the views that see the Gaussian.
+    ``view_aggregation`` across views: the max, or the mean over the views that see the Gaussian;
+    ``w_max`` and ``racy_max``: as :func:`gaussian_complexity` (the racy emulation draws a new
+    pixel choice for each view added, the first with ``racy_seed``).
     """
 
-    def __init__(self, num_gaussians: int, device, *, pixel_aggregation: str = "max", view_aggregation: str = "max"):
+    def __init__(
+        self,
+        num_gaussians: int,
+        device,
+        *,
+        pixel_aggregation: str = "max",
+        view_aggregation: str = "max",
+        w_max: str = "alpha",
+        racy_max: bool = False,
+        racy_seed: int = 0,
+    ):
         for name, value in (("pixel_aggregation", pixel_aggregation), ("view_aggregation", view_aggregation)):
             if value not in AGGREGATIONS:
                 raise ValueError(f"{name} must be one of {', '.join(AGGREGATIONS)}, got {value!r}")
+        if w_max not in W_MAX_RULES:
+            raise ValueError(f"w_max must be one of {', '.join(W_MAX_RULES)}, got {w_max!r}")
         self.pixel_aggregation = pixel_aggregation
         self.view_aggregation = view_aggregation
+        self.w_max = w_max
+        self.racy_max = racy_max
+        self.views_added = racy_seed  # the racy emulation's seed of the next view
         self.total = torch.zeros(num_gaussians, device=device)
         self.views_seen = torch.zeros(num_gaussians, device=device)
 
     @classmethod
-    def from_state(cls, total: torch.Tensor, views_seen: torch.Tensor, **aggregation) -> ViewComplexity:
+    def from_state(cls, total: torch.Tensor, views_seen: torch.Tensor, **options) -> ViewComplexity:
         """An accumulator over existing [N] tensors (updated in place), e.g. a strategy's state."""
-        accumulator = cls(0, total.device, **aggregation)
+        accumulator = cls(0, total.device, **options)
         accumulator.total, accumulator.views_seen = total, views_seen
         return accumulator
 
     def add(self, info, hf_map: torch.Tensor) -> None:
         """Add one render (its RasterizeInfo) of a view with complexity map ``hf_map``."""
-        max_out, sum_out, count = gaussian_complexity(info, hf_map)
+        racy_seed = self.views_added if self.racy_max else None
+        max_out, sum_out, count = gaussian_complexity(info, hf_map, w_max=self.w_max, racy_seed=racy_seed)
+        self.views_added += 1
         per_view = max_out if self.pixel_aggregation == "max" else sum_out / count.clamp_min(1)
         if self.view_aggregation == "max":
             torch.maximum(self.total, per_view, out=self.total)
@@ -196,12 +238,13 @@ class ViewComplexity:
 
 
 @torch.no_grad()
-def complexity_over_views(render, maps: ComplexityMaps, num_gaussians: int, device, **aggregation) -> torch.Tensor:
+def complexity_over_views(render, maps: ComplexityMaps, num_gaussians: int, device, **options) -> torch.Tensor:
     """[N] Γ over every view of ``maps``: ``render(i) -> (image, alpha, info)`` draws view ``i``.
 
-    ``aggregation``: ``pixel_aggregation`` and ``view_aggregation`` of :class:`ViewComplexity`.
+    ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max`` and ``racy_max`` of
+    :class:`ViewComplexity`.
     """
-    accumulator = ViewComplexity(num_gaussians, device, **aggregation)
+    accumulator = ViewComplexity(num_gaussians, device, **options)
     for index in range(len(maps)):
         _, _, info = render(index)
         accumulator.add(info, maps[index])

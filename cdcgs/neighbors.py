@@ -59,17 +59,18 @@ def initial_scales(points: torch.Tensor, rule: str = "3dgs", k: int = 3) -> torc
 
     rule "3dgs": sqrt of the mean of the squared distances to the k nearest points, with the
     mean floored at 1e-7 (as 3DGS). rule "cdc": sqrt of their geometric mean, floored at 1e-7
-    (CDC-GS, section 3 of the paper).
+    likewise (the CDC-GS code; section 3 of the paper).
     """
     sqdist, _ = knn(points, k)
     if rule == "3dgs":
         return sqdist.mean(dim=-1).clamp_min(1e-7).sqrt()
     if rule == "cdc":
-        return _geometric_mean(sqdist).sqrt().clamp_min(1e-7).float()
+        return _geometric_mean(sqdist).clamp_min(1e-7).sqrt().float()
     raise ValueError(f"rule must be '3dgs' or 'cdc', got {rule!r}")
 
 
 def density(points: torch.Tensor, k: int = 3) -> torch.Tensor:
-    """[N] CDC-GS density 1 / (geometric mean of the squared distances to the k nearest + 1e-6)."""
+    """[N] CDC-GS density 1 / (d + 1e-6), d the geometric mean of the squared distances to the k
+    nearest, floored at 1e-7 as the CDC-GS code (so at most 1 / 1.1e-6, about 9.1e5)."""
     sqdist, _ = knn(points, k)
-    return (1.0 / (_geometric_mean(sqdist) + 1e-6)).float()
+    return (1.0 / (_geometric_mean(sqdist).clamp_min(1e-7) + 1e-6)).float()

@@ -9,7 +9,7 @@ import torch
 from helpers import context, hand_model, tiny_config
 
 from cdcgs.cli import main as cli_main
-from cdcgs.train.cdc import CDC, caat_threshold, draw, pearson, quantile_score, zscore
+from cdcgs.train.cdc import CDC, caat_threshold, correlations, draw, pearson, quantile_score, ranks, zscore
 from cdcgs.train.presets import PRESETS
 from cdcgs.train.trainer import Trainer
 
@@ -46,6 +46,32 @@ def test_pearson():
     assert pearson(a, torch.ones(4)) == 0.0
 
 
+def brute_ranks(x):
+    """1-based ranks, ties averaged, by counting (O(N^2))."""
+    values = x.tolist()
+    return torch.tensor(
+        [sum(v < w for v in values) + (sum(v == w for v in values) + 1) / 2 for w in values], dtype=torch.float64
+    )
+
+
+def test_rank_statistics_match_brute_force_with_ties():
+    g = torch.Generator().manual_seed(3)
+    gamma = (torch.rand(300, generator=g) * 5).floor() / 5  # many ties, as Γ's zeros
+    psi = torch.exp(torch.randn(300, generator=g) * 3)
+    psi[:40] = 1 / 1.1e-6  # saturated near-duplicates
+    torch.testing.assert_close(ranks(gamma), brute_ranks(gamma))
+    torch.testing.assert_close(
+        ranks(torch.tensor([3.0, 1.0, 3.0, 2.0])), torch.tensor([3.5, 1.0, 3.5, 2.0], dtype=torch.float64)
+    )
+    stats = correlations(gamma, psi)
+    assert stats["correlation"] == pytest.approx(pearson(gamma, psi))
+    assert stats["correlation_log_density"] == pytest.approx(pearson(gamma, psi.log()))
+    assert stats["correlation_rank"] == pytest.approx(pearson(brute_ranks(gamma), brute_ranks(psi)))
+    assert stats["saturated_density"] == pytest.approx((40 + int((psi[40:] >= 5e5).sum())) / 300)
+    # Ranks see through the tail: a monotone transform leaves Spearman unchanged, not Pearson.
+    assert correlations(gamma, psi**3)["correlation_rank"] == pytest.approx(stats["correlation_rank"])
+
+
 def test_draw_counts_candidates_no_duplicates():
     g = torch.Generator().manual_seed(0)
     weights = torch.tensor([0.0, 1.0, 0.0, 2.0, 3.0, 0.0, 4.0])
@@ -79,6 +105,8 @@ def test_presets_cover_the_variants_table():
         "cdc-prune-only",
         "cdc-reverse",
         "cdc-compact",
+        "mcmc",
+        "mcmc-cdc",
     }
     cdc = CDC.from_preset("cdc")
     assert (
@@ -102,6 +130,35 @@ def test_presets_cover_the_variants_table():
     assert baseline.prune_screen_size == 0.0  # the 3DGS code's screen-size rule never fires
     with pytest.raises(ValueError, match="--complexity-schedule must be one of full, online"):
         CDC.from_preset("cdc", {"complexity_schedule": "sometimes"})
+
+
+def test_the_cdc_presets_default_to_the_authors_settings():
+    from cdcgs.train.config import TrainConfig
+
+    cdc, baseline = CDC.from_preset("cdc"), CDC.from_preset("3dgs", {"log_correlation": True})
+    assert cdc.w_max == "alpha" and not cdc.racy_max and cdc.periodic_prune_newborns and cdc.cap_rule == "skip"
+    # The baseline measures Γ as CDC does: every view at each densification step, the same w_max.
+    assert (baseline.complexity_schedule, baseline.w_max) == (cdc.complexity_schedule, cdc.w_max) == ("full", "alpha")
+    config = TrainConfig()  # one set of learning rates and initial scales for every preset
+    assert config.lr.opacity_logits == 0.025 and config.scale_rule == "cdc" and config.init_opacity is None
+
+
+@pytest.mark.parametrize("newborns", [True, False])
+def test_periodic_prune_judges_the_newborns_as_the_authors_code(newborns):
+    model, optimizer = hand_model()
+    with torch.no_grad():
+        model.params["opacity_logits"][0] = math.log(0.05 / 0.95)  # 0 is below 0.1 and will be cloned
+    strategy = CDC(
+        cdc_densify=False, cdc_prune=False, caat=False, log_correlation=False, periodic_prune_newborns=newborns
+    )
+    state = strategy.initialize_state(model)
+    state["grad_sum"] = torch.tensor([5e-4, 0, 0, 0, 0, 0])
+    state["count"] = torch.ones(6)
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=3000), state)
+    assert log["cloned"] == 1
+    # After growth: 0, its clone and 5 are below 0.1; before it only 0 and 5 were there to judge.
+    assert log["periodic_prune"] == (3 if newborns else 2)
+    assert model.num == 7 - log["periodic_prune"]
 
 
 def test_periodic_prune_replaces_per_step_pruning():
@@ -152,6 +209,10 @@ def test_compare_plots_runs(tiny_scene, tmp_path, capsys):
             {"densify_from": 10, "densify_until": 25, "densify_every": 10, **opts},
         ).run()
     assert cli_main(["compare", str(tmp_path / "cdc"), str(tmp_path / "3dgs"), "--out", str(tmp_path / "fig.png")]) == 0
+    table = capsys.readouterr().out
+    history = json.load(open(tmp_path / "cdc" / "history.json"))
+    last = [e for e in history["strategy"] if "correlation" in e][-1]
+    assert "| cdc (cdc) | 20–20 |" in table and f"{last['correlation_rank']:.3f}" in table
     assert (tmp_path / "fig.png").stat().st_size > 1000
     assert cli_main(["compare", str(tmp_path / "nope")]) == 2
     assert json.load(open(tmp_path / "cdc" / "config.json"))["strategy"]["name"] == "CDC"

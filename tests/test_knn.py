@@ -183,12 +183,12 @@ def test_initial_scales_and_density(device):
         initial_scales(t, "3dgs").cpu().numpy(), np.sqrt(np.maximum(ref_d.mean(1), 1e-7)), rtol=1e-5
     )
     geometric = np.cbrt(ref_d.prod(1))
-    np.testing.assert_allclose(initial_scales(t, "cdc").cpu().numpy(), np.maximum(np.sqrt(geometric), 1e-7), rtol=1e-5)
-    np.testing.assert_allclose(density(t).cpu().numpy(), 1.0 / (geometric + 1e-6), rtol=1e-5)
+    np.testing.assert_allclose(initial_scales(t, "cdc").cpu().numpy(), np.sqrt(np.maximum(geometric, 1e-7)), rtol=1e-5)
+    np.testing.assert_allclose(density(t).cpu().numpy(), 1.0 / (np.maximum(geometric, 1e-7) + 1e-6), rtol=1e-5)
     # Duplicates: zero distances give the floors.
     dup = torch.zeros(5, 3, device=device)
-    assert torch.allclose(initial_scales(dup, "cdc").cpu(), torch.full((5,), 1e-7))
+    assert torch.allclose(initial_scales(dup, "cdc").cpu(), torch.full((5,), 1e-7**0.5))
     assert torch.allclose(initial_scales(dup, "3dgs").cpu(), torch.full((5,), 1e-7**0.5))
-    assert torch.allclose(density(dup).cpu(), torch.full((5,), 1e6))
+    assert torch.allclose(density(dup).cpu(), torch.full((5,), 1 / 1.1e-6))
     with pytest.raises(ValueError, match="rule must be"):
         initial_scales(t, "mean")

@@ -10,8 +10,9 @@ from helpers import context, fake_info, hand_model, moments
 from cdcgs.train import ops
 from cdcgs.train.cdc import CDC
 from cdcgs.train.config import LearningRates
-from cdcgs.train.presets import PRESETS
+from cdcgs.train.presets import PRESET_CLASS, PRESETS
 from cdcgs.train.schedules import position_lr
+from cdcgs.train.strategies import make_strategy, strategy_fields
 from cdcgs.train.strategy import ADC
 
 
@@ -111,7 +112,7 @@ def test_reset_runs_on_schedule_and_stops_after_densification():
 
 def test_max_gaussians_caps_growth_keeping_the_strongest():
     model, optimizer = hand_model()
-    strategy = ADC(max_gaussians=7)
+    strategy = ADC(max_gaussians=7, cap_rule="fill")
     state = strategy.initialize_state(model)
     state["grad_sum"] = torch.tensor([5e-4, 9e-4, 3e-4, 3e-4, 1e-4, 1e-4])
     state["count"] = torch.ones(6)
@@ -146,9 +147,15 @@ def test_every_preset_is_a_strategy():
     from cdcgs.train.strategy import Strategy
 
     for name in PRESETS:
-        strategy = CDC.from_preset(name)
+        strategy = make_strategy(name)
         assert isinstance(strategy, Strategy), name
-        assert strategy.config()["name"] == "CDC"
+        assert strategy.config()["name"] == ("MCMC" if name.startswith("mcmc") else "CDC")
+    with pytest.raises(ValueError, match="not a CDC preset"):
+        CDC.from_preset("mcmc")
+    with pytest.raises(ValueError, match="needs a budget"):
+        make_strategy("mcmc", {"target_gaussians": None})
+    with pytest.raises(ValueError, match="has no option"):
+        make_strategy("mcmc", {"grad_threshold": 1e-4})
     assert isinstance(ADC(), Strategy) and ADC().complexity_maps_method is None
     assert CDC.from_preset("3dgs").complexity_maps_method is None
     assert CDC.from_preset("3dgs", {"log_correlation": True}).complexity_maps_method == "dwt"
@@ -156,8 +163,8 @@ def test_every_preset_is_a_strategy():
 
 
 def test_every_strategy_option_has_help():
-    for f in CDC.options():
-        assert len(f.metadata.get("help", "")) > 10, f.name
+    for f, _, presets in strategy_fields():
+        assert len(f.metadata.get("help", "")) > 10 and presets, f.name
 
 
 def test_clone_copies_parameters_with_fresh_moments():
@@ -211,7 +218,7 @@ def test_relocate_moves_parameters_and_restarts_their_moments():
         ops.relocate(model, optimizer, torch.tensor([0]), torch.tensor([1]), {"colour": torch.zeros(1)})
 
 
-@pytest.mark.parametrize("name", sorted(PRESETS))
+@pytest.mark.parametrize("name", sorted(set(PRESETS) - set(PRESET_CLASS)))
 def test_every_preset_fires_its_events_at_the_steps_of_the_inria_code(name):
     """Iterations from 1, strict `iteration < densify_until_iter` (INRIA's train.py, the CDC-GS code)."""
     strategy = CDC.from_preset(name)
@@ -239,3 +246,61 @@ def test_the_hooks_follow_the_schedule_at_its_edges():
     counted = state["count"].clone()
     strategy.after_backward(context(model, optimizer, info(), 15000), state)
     assert torch.equal(state["count"], counted), "no statistics at iteration 15000"
+
+
+@pytest.mark.parametrize("name", sorted(PRESET_CLASS))
+def test_mcmc_presets_refine_at_the_steps_of_the_mcmc_code(name):
+    """3DGS-MCMC's train.py: `densify_from_iter < iteration < densify_until_iter` (500, 25000), every 100."""
+    strategy = make_strategy(name)
+    steps = range(1, 30_001)
+    assert [t for t in steps if strategy.refines_at(t)] == list(range(600, 25_000, 100))
+    assert [t for t in steps if strategy.accumulates_at(t)] == list(range(1, 25_000))
+
+
+def _ranked_state(model, scores):
+    state = ADC().initialize_state(model)
+    state["grad_sum"] = torch.tensor(scores)
+    state["count"] = torch.ones(model.num)
+    return state
+
+
+def test_the_cap_skips_growth_once_reached_as_the_cdc_gs_code_or_fills():
+    model, optimizer = hand_model()
+    scores = [5e-4, 1e-4, 1e-4, 3e-4, 1e-4, 1e-4]  # 0 clones, 3 splits: growth 2
+    # skip: below the cap the whole growth happens, even past it (6 + 2 > 7)...
+    strategy = ADC(max_gaussians=7)
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=600), _ranked_state(model, scores))
+    assert (log["cloned"], log["split"]) == (1, 1)
+    # ... and none once the count has reached it (7 >= 7), while pruning goes on.
+    model, optimizer = hand_model()
+    strategy = ADC(max_gaussians=6)
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=600), _ranked_state(model, scores))
+    assert (log["cloned"], log["split"], log["pruned"]) == (0, 0, 1)
+    # fill: the strongest candidate that fits.
+    model, optimizer = hand_model()
+    strategy = ADC(max_gaussians=7, cap_rule="fill")
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=600), _ranked_state(model, scores))
+    assert (log["cloned"], log["split"]) == (1, 0)
+
+
+@pytest.mark.parametrize("target", [4, 5, 8, 9])
+def test_target_count_is_landed_on_at_the_last_densification_step(target):
+    model, optimizer = hand_model()
+    strategy = ADC(target_gaussians=target, reset_every=30_000)  # no world-size pruning at 14900
+    assert strategy.last_densification() == 14_900
+    scores = [5e-4, 1e-4, 1.5e-4, 3e-4, 1e-4, 1e-4]
+    # An earlier step only caps growth at the target (strongest first).
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=600), _ranked_state(model, scores))
+    assert model.num <= max(target, 6 - 1)
+    model, optimizer = hand_model()
+    opacity_before = model.opacities().detach().clone()
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=14_900), _ranked_state(model, scores))
+    assert model.num == target, log
+    if target == 4:  # growth capped to nothing, 5 left after the rule's prune: the least opaque goes
+        assert log["target_pruned"] == 1
+        kept = sorted(opacity_before[opacity_before >= 0.005].tolist())[1:]
+        torch.testing.assert_close(sorted(model.opacities().detach().tolist()), kept)
+    if target == 9:  # 6 + 2 grown - 1 pruned = 7: the two strongest not grown (2, then 1 before 4 by index) cloned
+        assert log["target_cloned"] == 2
+        x = model.params["means"][:, 0].detach()
+        assert sorted(x[-2:].tolist()) == [1.0, 2.0]

@@ -35,7 +35,17 @@ from ._lanes import (
 )
 from .projection import ALPHA_THRESHOLD
 
-__all__ = ["blend_backward_kernel", "blend_backward_lean_kernel", "blend_forward_kernel", "complexity_kernel"]
+__all__ = [
+    "MAX_EXACT",
+    "MAX_RACY_KEEP",
+    "MAX_RACY_RANK",
+    "W_MAX_ALPHA",
+    "W_MAX_WEIGHT",
+    "blend_backward_kernel",
+    "blend_backward_lean_kernel",
+    "blend_forward_kernel",
+    "complexity_kernel",
+]
 
 # CUDA: --use_fast_math (approximate exp and division, as gsplat builds its kernels; the CPU build
 # ignores it), and no grid-stride loop (one pixel per thread, fewer registers).
@@ -387,6 +397,27 @@ blend_backward_kernel = _blend_backward(True)
 blend_backward_lean_kernel = _blend_backward(False)
 
 
+# How the complexity pass finds w_max(p): the largest alpha * T up to the pixel's last contributor
+# (the formula), or the largest alpha over the pixel's whole tile list (the CDC-GS code, whose
+# first pass never updates T).
+W_MAX_WEIGHT = wp.constant(0)
+W_MAX_ALPHA = wp.constant(1)
+# The complexity pass's per-Gaussian max: exact (an atomic max over every pixel), or the CDC-GS
+# code's racy store emulated in two launches: RACY_RANK gives each (tile, Gaussian) pair the key
+# of one pseudo-randomly ranked contributing pixel, RACY_KEEP lets only that pixel's value in.
+MAX_EXACT = wp.constant(0)
+MAX_RACY_RANK = wp.constant(1)
+MAX_RACY_KEEP = wp.constant(2)
+
+
+@wp.func
+def racy_key(seed: int, g: int, local: int):
+    """A key unique within a tile for (Gaussian g, pixel ``local`` of the tile): 23 pseudo-random
+    bits over the pixel's 8, so the largest key picks a random contributing pixel."""
+    state = wp.rand_init(seed * BLOCK_SIZE + local, g)
+    return (wp.randi(state) & 0x7FFFFF) * BLOCK_SIZE + local
+
+
 @wp.kernel(enable_backward=False)
 def complexity_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
@@ -399,6 +430,10 @@ def complexity_kernel(
     width: int,
     height: int,
     tiles_x: int,
+    w_max_rule: int,
+    max_rule: int,
+    seed: int,
+    keys: wp.array(dtype=wp.int32),
     max_out: wp.array(dtype=float),
     sum_out: wp.array(dtype=float),
     count_out: wp.array(dtype=wp.int32),
@@ -407,31 +442,45 @@ def complexity_kernel(
     composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
 
     Two passes over each pixel's list, in compositing order up to its last contributor (the same
-    alpha and transmittance rules as the forward blend): the first finds w_max, the second combines
-    the warp's contributions per Gaussian in registers (max, sum, count) and adds them with an
-    exact atomic max and atomic sums (the sums serve the mean aggregation).
+    alpha and transmittance rules as the forward blend): the first finds w_max (``w_max_rule``:
+    W_MAX_WEIGHT the largest alpha * T, W_MAX_ALPHA the largest alpha over the whole tile list,
+    both floored at 1e-4), the second combines the warp's contributions per Gaussian in registers
+    (max, sum, count) and adds them with an exact atomic max and atomic sums (the sums serve the
+    mean aggregation). ``max_rule`` MAX_RACY_RANK writes, per entry of the tile lists, the largest
+    ``racy_key`` (with ``seed``) of the pixels that composite it into ``keys`` (as long as
+    ``sorted_gauss_ids``, filled with -1) and nothing else; MAX_RACY_KEEP then takes into
+    ``max_out`` only those pixels' values (sums and counts stay exact).
     ``complexity_map`` holds HF in [0, 1] as uint8 (x 255).
     """
-    pix = tile_pixel(wp.tid(), tiles_x)
+    tid = wp.tid()
+    pix = tile_pixel(tid, tiles_x)
     x = pix[0]
     y = pix[1]
+    local = tid - pix[2] * BLOCK_SIZE
     px = float(x) + 0.5
     py = float(y) + 0.5
     start = tile_ranges[pix[2], 0]
     hf = float(0.0)
     last = start - 1  # pixels outside the image take part in the warp's collectives with nothing to add
+    first_pass_end = start - 1
     if x < width and y < height:
         hf = float(complexity_map[y, x]) / 255.0
         last = last_contributor[y, x]
+        first_pass_end = last
+        if w_max_rule == W_MAX_ALPHA:
+            first_pass_end = tile_ranges[pix[2], 1] - 1
     w_max = float(1.0e-4)
     transmittance = float(1.0)
-    for k in range(start, last + 1):
+    for k in range(start, first_pass_end + 1):
         g = sorted_gauss_ids[k]
         alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
         if alpha == 0.0:
             continue
-        w_max = wp.max(w_max, alpha * transmittance)
-        transmittance = transmittance * (1.0 - alpha)
+        if w_max_rule == W_MAX_ALPHA:
+            w_max = wp.max(w_max, alpha)
+        else:
+            w_max = wp.max(w_max, alpha * transmittance)
+            transmittance = transmittance * (1.0 - alpha)
     # Second pass: the warp's lanes walk the list together so that each Gaussian's max, sum and
     # count are combined in registers and reach global memory once per warp.
     transmittance = float(1.0)
@@ -448,10 +497,22 @@ def complexity_kernel(
             valid = 1
             transmittance = transmittance * (1.0 - alpha)
         if lane_any(valid) != 0:
-            top = lane_max(value)
-            total = lane_sum(value)
-            count = lane_sum(float(valid))
-            if lane_leads() != 0:
-                wp.atomic_max(max_out, g, top)
-                wp.atomic_add(sum_out, g, total)
-                wp.atomic_add(count_out, g, int(count))
+            if max_rule == MAX_RACY_RANK:
+                key = int(-1)
+                if valid != 0:
+                    key = racy_key(seed, g, local)
+                top_key = lane_max_int(key)
+                if lane_leads() != 0:
+                    wp.atomic_max(keys, k, top_key)
+            else:
+                kept = value
+                if max_rule == MAX_RACY_KEEP:
+                    if valid == 0 or racy_key(seed, g, local) != keys[k]:
+                        kept = 0.0
+                top = lane_max(kept)
+                total = lane_sum(value)
+                count = lane_sum(float(valid))
+                if lane_leads() != 0:
+                    wp.atomic_max(max_out, g, top)
+                    wp.atomic_add(sum_out, g, total)
+                    wp.atomic_add(count_out, g, int(count))

@@ -1,17 +1,20 @@
 """Training: configuration, the Gaussian model, parameter surgery, densification strategies
-(3DGS's ADC and CDC-GS, as named presets), the loop, evaluation and the run folder."""
+(3DGS's ADC, CDC-GS and 3DGS-MCMC, as named presets), the loop, evaluation and the run folder."""
 
 from .cdc import CDC
 from .config import DataConfig, LearningRates, TrainConfig
+from .mcmc import MCMC
 from .model import GaussianModel
 from .outputs import Run, load_run
 from .presets import PRESETS
+from .strategies import make_strategy
 from .strategy import ADC, StepContext, Strategy
 from .trainer import Trainer, TrainingDiverged
 
 __all__ = [
     "ADC",
     "CDC",
+    "MCMC",
     "PRESETS",
     "DataConfig",
     "GaussianModel",
@@ -23,4 +26,5 @@ __all__ = [
     "Trainer",
     "TrainingDiverged",
     "load_run",
+    "make_strategy",
 ]

@@ -19,17 +19,26 @@ paper, and the 3DGS baseline, is a configuration of this one class (:mod:`cdcgs.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 
-from ..complexity import AGGREGATIONS, METHODS, ViewComplexity, complexity_over_views
-from ..errors import OptionError
+from ..complexity import AGGREGATIONS, METHODS, W_MAX_RULES, ViewComplexity, complexity_over_views
 from ..neighbors import density
-from .presets import PRESETS, canonical_name
+from .presets import build_preset
 from .strategy import ADC, StepContext, strategy_option
 
-__all__ = ["CDC", "caat_threshold", "draw", "pearson", "quantile_score", "zscore"]
+__all__ = [
+    "CDC",
+    "Consistency",
+    "caat_threshold",
+    "correlations",
+    "draw",
+    "pearson",
+    "quantile_score",
+    "ranks",
+    "zscore",
+]
 
 
 def zscore(x: torch.Tensor) -> torch.Tensor:
@@ -49,9 +58,36 @@ def quantile_score(x: torch.Tensor, q: float, generator: torch.Generator | None 
 
 
 def pearson(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Pearson's r of two [N] tensors (in float64; 0 when either is constant)."""
     a, b = a.double() - a.double().mean(), b.double() - b.double().mean()
     denominator = (a.norm() * b.norm()).item()
     return (a @ b).item() / denominator if denominator > 0 else 0.0
+
+
+def ranks(x: torch.Tensor) -> torch.Tensor:
+    """[N] float64 ranks 1..N of ``x`` [N], ties sharing their average rank."""
+    values, order = torch.sort(x)
+    _, group, counts = torch.unique_consecutive(values, return_inverse=True, return_counts=True)
+    ends = counts.cumsum(0).double()
+    average = ends - (counts.double() - 1.0) / 2.0
+    result = torch.empty(x.shape[0], dtype=torch.float64, device=x.device)
+    result[order] = average[group]
+    return result
+
+
+# Ψ at or above this counts as saturated: d̄² below about 1e-6, near-duplicate centres (Ψ ≤ 9.1e5).
+SATURATED_DENSITY = 5e5
+
+
+def correlations(gamma: torch.Tensor, psi: torch.Tensor) -> dict:
+    """The complexity-density statistics logged at every densification step: Pearson r(Γ, Ψ) (the
+    paper's Fig. 4), Pearson r(Γ, log Ψ), Spearman ρ(Γ, Ψ), and the share of saturated Ψ."""
+    return {
+        "correlation": pearson(gamma, psi),
+        "correlation_log_density": pearson(gamma, psi.double().log()),
+        "correlation_rank": pearson(ranks(gamma), ranks(psi)),
+        "saturated_density": float((psi >= SATURATED_DENSITY).double().mean()),
+    }
 
 
 def caat_threshold(gamma: torch.Tensor, tau_low: float, tau_up: float, lam: float) -> torch.Tensor:
@@ -75,8 +111,10 @@ def draw(weights: torch.Tensor, count: int, generator: torch.Generator) -> torch
 
 
 @dataclass(kw_only=True)
-class CDC(ADC):
-    """ADC plus complexity-density consistency (the options are the paper's ablation axes)."""
+class Consistency:
+    """Complexity-density consistency: Γ and Ψ of every Gaussian, their statistics, and the draws
+    of densification and pruning candidates; the options are the paper's ablation axes. A mixin:
+    :class:`CDC` puts it on 3DGS's ADC, :class:`cdcgs.train.mcmc.MCMC` on 3DGS-MCMC."""
 
     cdc_densify: bool = strategy_option(
         True, "draw complex-but-sparse Gaussians into densification (consistency densification)"
@@ -96,20 +134,6 @@ class CDC(ADC):
     density_quantile: float = strategy_option(
         0.25, "with --centre quantile: the quantile of Ψ that centres its score", low=0.0, high=1.0
     )
-    caat: bool = strategy_option(
-        True, "CAAT: complexity-aware adaptive gradient threshold between --tau-low and --tau-up"
-    )
-    tau_low: float = strategy_option(1.5e-4, "CAAT: threshold of the most complex Gaussians", low=0.0)
-    tau_up: float = strategy_option(2e-4, "CAAT: threshold of the flattest Gaussians", low=0.0)
-    caat_lambda: float = strategy_option(6.0, "CAAT: steepness λ of the sigmoid in Γ")
-    periodic_prune: bool = strategy_option(
-        True,
-        "every --periodic-prune-every steps remove Gaussians below --periodic-prune-opacity (replaces per-step pruning)",
-    )
-    periodic_prune_every: int = strategy_option(3000, "iterations between periodic prunes", low=1)
-    periodic_prune_opacity: float = strategy_option(
-        0.1, "the periodic prune removes Gaussians less opaque than this", low=0.0, high=1.0
-    )
     complexity_schedule: str = strategy_option(
         "full",
         "full: Γ over every training view at each densification step (as the paper); online: from the training renders since the last step",
@@ -124,121 +148,195 @@ class CDC(ADC):
     complexity_method: str = strategy_option(
         "dwt", "high-frequency map: Haar DWT (1 or 2 levels) or an edge filter", choices=METHODS
     )
+    w_max: str = strategy_option(
+        "alpha",
+        "w_max(p) of Γ: alpha, the largest α over the pixel's tile list (the CDC-GS code), or weight, the largest α·T (the paper's formula)",
+        choices=W_MAX_RULES,
+    )
+    racy_max: bool = strategy_option(
+        False,
+        "diagnosis: emulate the CDC-GS code's racy per-Gaussian max of Γ (one random pixel per tile instead of the largest)",
+    )
     neighbours: int = strategy_option(3, "nearest neighbours that the density Ψ is measured over", low=1, high=16)
-    log_correlation: bool = strategy_option(True, "log Pearson r(Γ, Ψ) at every densification step (correlation.png)")
-
-    # Values are checked by ADC.__post_init__ (check_values), fields of this class included.
-
-    @classmethod
-    def from_preset(cls, name: str, options: dict | None = None) -> CDC:
-        """The named preset (:data:`cdcgs.train.presets.PRESETS`, aliases accepted) with
-        ``options`` overriding its hyperparameters.
-
-        Raises:
-            ValueError: an unknown preset or option name, or a value the strategy refuses.
-        """
-        preset = PRESETS[canonical_name(name)]
-        options = dict(options or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise OptionError(f"strategy {name!r} has no option(s) {unknown}; it has {sorted(known)}")
-        return cls(**{**preset, **options})
+    log_correlation: bool = strategy_option(
+        True, "log r(Γ, Ψ), r(Γ, log Ψ), Spearman ρ and the share of saturated Ψ at every densification step"
+    )
 
     @property
     def needs_complexity(self) -> bool:
-        return self.cdc_densify or self.cdc_prune or self.caat or self.log_correlation
+        return self.cdc_densify or self.cdc_prune or self.log_correlation
 
     @property
     def complexity_maps_method(self) -> str | None:
         return self.complexity_method if self.needs_complexity else None
 
-    def _aggregation(self) -> dict:
-        return {"pixel_aggregation": self.pixel_aggregation, "view_aggregation": self.view_aggregation}
+    def _gamma_options(self, step: int) -> dict:
+        return {
+            "pixel_aggregation": self.pixel_aggregation,
+            "view_aggregation": self.view_aggregation,
+            "w_max": self.w_max,
+            "racy_max": self.racy_max,
+            "racy_seed": step * 100_003,
+        }
 
-    def initialize_state(self, model) -> dict:
-        state = super().initialize_state(model)
+    def consistency_state(self, model) -> dict:
+        """The online schedule's running Γ (empty for the full schedule)."""
         if self.needs_complexity and self.complexity_schedule == "online":
-            state["gamma"] = torch.zeros(model.num, device=model.device)
-            state["gamma_views"] = torch.zeros(model.num, device=model.device)
-        return state
+            return {
+                "gamma": torch.zeros(model.num, device=model.device),
+                "gamma_views": torch.zeros(model.num, device=model.device),
+            }
+        return {}
+
+    def accumulate_complexity(self, ctx: StepContext, state: dict) -> None:
+        """Online schedule: add this iteration's render to the running Γ."""
+        if self.needs_complexity and self.complexity_schedule == "online":
+            with torch.no_grad():
+                options = self._gamma_options(ctx.step)
+                accumulator = ViewComplexity.from_state(state["gamma"], state["gamma_views"], **options)
+                accumulator.add(ctx.info, ctx.complexity_maps[ctx.view_index])
 
     def complexity(self, ctx: StepContext, state: dict) -> torch.Tensor:
         """[N] Γ of every Gaussian for this densification step."""
+        options = self._gamma_options(ctx.step)
         if self.complexity_schedule == "online":
-            return ViewComplexity.from_state(state["gamma"], state["gamma_views"], **self._aggregation()).result()
-        return complexity_over_views(
-            ctx.render, ctx.complexity_maps, ctx.model.num, ctx.model.device, **self._aggregation()
-        )
+            return ViewComplexity.from_state(state["gamma"], state["gamma_views"], **options).result()
+        return complexity_over_views(ctx.render, ctx.complexity_maps, ctx.model.num, ctx.model.device, **options)
+
+    def measure(self, ctx: StepContext, state: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """(Γ [N], Ψ [N], their statistics when logged) of the Gaussians as they are now."""
+        gamma = self.complexity(ctx, state)
+        psi = density(ctx.model.params["means"].detach(), self.neighbours)
+        return gamma, psi, (correlations(gamma, psi) if self.log_correlation else {})
+
+    def consistency_draws(
+        self, ctx: StepContext, gamma: torch.Tensor, psi: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """(densify [N], prune [N], log): the Gaussians drawn for consistency densification (complex
+        but sparse, ⌊rho_densify N⌋ by |s|) and pruning (flat but crowded, ⌊rho_prune N⌋ by
+        1 - opacity), each all False when its part is off."""
+        model = ctx.model
+        n = model.num
+        densify = torch.zeros(n, dtype=torch.bool, device=model.device)
+        prune = torch.zeros_like(densify)
+        if not (self.cdc_densify or self.cdc_prune):
+            return densify, prune, {}
+        if self.centre == "mean":
+            z_gamma, z_psi = zscore(gamma), zscore(psi)
+        else:
+            z_gamma, z_psi = (
+                quantile_score(gamma, self.complexity_quantile, ctx.generator),
+                quantile_score(psi, self.density_quantile, ctx.generator),
+            )
+        s = z_gamma * z_psi
+        complex_sparse = (s < 0) & (z_gamma > 0)
+        flat_crowded = (s < 0) & (z_gamma < 0)
+        densify_pool, prune_pool = (flat_crowded, complex_sparse) if self.reverse else (complex_sparse, flat_crowded)
+        log = {
+            "gaussians_before": n,
+            "densify_candidates": int(densify_pool.sum()),
+            "prune_candidates": int(prune_pool.sum()),
+        }
+        if self.cdc_densify:
+            weights = torch.where(densify_pool, s.abs(), torch.zeros_like(s))
+            densify = draw(weights, math.floor(self.rho_densify * n), ctx.generator)
+            log["cdc_densify"] = int(densify.sum())
+        if self.cdc_prune:
+            keep_weight = (1.0 - model.opacities().detach()).clamp_min(1e-12)
+            weights = torch.where(prune_pool, keep_weight, torch.zeros_like(keep_weight))
+            prune = draw(weights, math.floor(self.rho_prune * n), ctx.generator)
+            log["cdc_prune"] = int(prune.sum())
+        return densify, prune, log
+
+
+@dataclass(kw_only=True)
+class CDC(Consistency, ADC):
+    """ADC plus complexity-density consistency, CAAT and the periodic prune (the options are the
+    paper's ablation axes; the defaults are the CDC-GS code's settings)."""
+
+    caat: bool = strategy_option(
+        True, "CAAT: complexity-aware adaptive gradient threshold between --tau-low and --tau-up"
+    )
+    tau_low: float = strategy_option(1.5e-4, "CAAT: threshold of the most complex Gaussians", low=0.0)
+    tau_up: float = strategy_option(2e-4, "CAAT: threshold of the flattest Gaussians", low=0.0)
+    caat_lambda: float = strategy_option(6.0, "CAAT: steepness λ of the sigmoid in Γ")
+    periodic_prune: bool = strategy_option(
+        True,
+        "every --periodic-prune-every steps remove Gaussians below --periodic-prune-opacity (replaces per-step pruning)",
+    )
+    periodic_prune_every: int = strategy_option(3000, "iterations between periodic prunes", low=1)
+    periodic_prune_opacity: float = strategy_option(
+        0.1, "the periodic prune removes Gaussians less opaque than this", low=0.0, high=1.0
+    )
+    periodic_prune_newborns: bool = strategy_option(
+        True,
+        "the periodic prune runs after the step's growth and judges the newborn Gaussians too (the CDC-GS code); off: before it",
+    )
+
+    # Values are checked by ADC.__post_init__ (check_values), fields of this class included.
+
+    @classmethod
+    def from_preset(cls, name: str, options: dict | None = None) -> CDC:
+        """The named CDC preset (:data:`cdcgs.train.presets.PRESETS`, aliases accepted) with
+        ``options`` overriding its hyperparameters (:func:`cdcgs.train.strategies.make_strategy`
+        builds any preset).
+
+        Raises:
+            ValueError: an unknown preset or option name, a preset of another class, or a value
+                the strategy refuses.
+        """
+        return build_preset(cls, name, options)
+
+    @property
+    def needs_complexity(self) -> bool:
+        return Consistency.needs_complexity.fget(self) or self.caat
+
+    def initialize_state(self, model) -> dict:
+        return {**super().initialize_state(model), **self.consistency_state(model)}
 
     # --- hooks --------------------------------------------------------------------------------
 
     def after_backward(self, ctx: StepContext, state: dict) -> dict:
-        if self.needs_complexity and self.complexity_schedule == "online" and self.accumulates_at(ctx.step):
-            with torch.no_grad():
-                accumulator = ViewComplexity.from_state(state["gamma"], state["gamma_views"], **self._aggregation())
-                accumulator.add(ctx.info, ctx.complexity_maps[ctx.view_index])
+        if self.accumulates_at(ctx.step):
+            self.accumulate_complexity(ctx, state)
         return super().after_backward(ctx, state)
 
     def densify_and_prune(self, ctx: StepContext, state: dict) -> dict:
         model = ctx.model
         log = {}
         mean_grad = self.mean_gradient(state)
-        selected_by_gradient = None
-        prune_extra = torch.zeros(model.num, dtype=torch.bool, device=model.device)
+        prune_extra = None
+        threshold = self.grad_threshold
+        selected = None
         if self.needs_complexity:
-            gamma = self.complexity(ctx, state)
-            psi = density(model.params["means"].detach(), self.neighbours)
-            if self.log_correlation:
-                log["correlation"] = pearson(gamma, psi)
-            threshold = (
-                caat_threshold(gamma, self.tau_low, self.tau_up, self.caat_lambda) if self.caat else self.grad_threshold
-            )
-            selected_by_gradient = mean_grad >= threshold
-            if self.cdc_densify or self.cdc_prune:
-                if self.centre == "mean":
-                    z_gamma, z_psi = zscore(gamma), zscore(psi)
-                else:
-                    z_gamma, z_psi = (
-                        quantile_score(gamma, self.complexity_quantile, ctx.generator),
-                        quantile_score(psi, self.density_quantile, ctx.generator),
-                    )
-                s = z_gamma * z_psi
-                complex_sparse = (s < 0) & (z_gamma > 0)
-                flat_crowded = (s < 0) & (z_gamma < 0)
-                densify_pool, prune_pool = (
-                    (flat_crowded, complex_sparse) if self.reverse else (complex_sparse, flat_crowded)
-                )
-                n = model.num
-                log.update(
-                    gaussians_before=n,
-                    densify_candidates=int(densify_pool.sum()),
-                    prune_candidates=int(prune_pool.sum()),
-                )
-                if self.cdc_densify:
-                    drawn = draw(
-                        torch.where(densify_pool, s.abs(), torch.zeros_like(s)),
-                        math.floor(self.rho_densify * n),
-                        ctx.generator,
-                    )
-                    log["cdc_densify"] = int(drawn.sum())
-                    selected_by_gradient |= drawn
-                if self.cdc_prune:
-                    keep_weight = (1.0 - model.opacities().detach()).clamp_min(1e-12)
-                    prune_extra = draw(
-                        torch.where(prune_pool, keep_weight, torch.zeros_like(keep_weight)),
-                        math.floor(self.rho_prune * n),
-                        ctx.generator,
-                    )
-                    log["cdc_prune"] = int(prune_extra.sum())
+            gamma, psi, stats = self.measure(ctx, state)
+            log.update(stats)
+            if self.caat:
+                threshold = caat_threshold(gamma, self.tau_low, self.tau_up, self.caat_lambda)
+            drawn, prune_extra, draws_log = self.consistency_draws(ctx, gamma, psi)
+            log.update(draws_log)
+            selected = (mean_grad >= threshold) | drawn
         else:
-            selected_by_gradient = mean_grad >= self.grad_threshold
-        clone, split = self.grow_masks(ctx, state, selected_by_gradient)
+            selected = mean_grad >= threshold
+        cap, rule = self.growth_cap()
+        if cap is not None and rule == "skip" and model.num >= cap and prune_extra is not None:
+            prune_extra = torch.zeros_like(prune_extra)  # the CDC-GS code skips the consistency pruning too
+        clone, split = self.grow_masks(ctx, state, selected)
+        prune_after = None
         if self.periodic_prunes_at(ctx.step):
             # Runs in the densification step, before the opacity reset of the same iteration.
-            prune_extra |= model.opacities().detach() < self.periodic_prune_opacity
-            log["periodic_prune"] = int((model.opacities().detach() < self.periodic_prune_opacity).sum())
-        log.update(self.apply(ctx, state, clone, split, prune_extra))
+            threshold_opacity = self.periodic_prune_opacity
+
+            def periodic(m):
+                mask = m.opacities().detach() < threshold_opacity
+                log["periodic_prune"] = int(mask.sum())
+                return mask
+
+            if self.periodic_prune_newborns:
+                prune_after = periodic
+            else:
+                prune_extra = periodic(model) if prune_extra is None else prune_extra | periodic(model)
+        log.update(self.apply(ctx, state, clone, split, prune_extra, prune_after))
         return log
 
     def periodic_prunes_at(self, step: int) -> bool:

@@ -94,7 +94,7 @@ class DataConfig:
 
 @dataclass(kw_only=True)
 class LearningRates:
-    """Adam learning rates per parameter (3DGS defaults). Position rates are x scene extent."""
+    """Adam learning rates per parameter (the CDC-GS code's). Position rates are x scene extent."""
 
     means_init: float = option(1.6e-4, "position learning rate at the start, x scene extent", low=0.0, low_open=True)
     means_final: float = option(
@@ -102,7 +102,11 @@ class LearningRates:
     )
     log_scales: float = option(5e-3, "learning rate of the log scales", low=0.0)
     quats: float = option(1e-3, "learning rate of the rotations (quaternions)", low=0.0)
-    opacity_logits: float = option(5e-2, "learning rate of the opacity logits", low=0.0)
+    opacity_logits: float = option(
+        2.5e-2,
+        "learning rate of the opacity logits (0.025 as the CDC-GS and current INRIA code; 3DGS's first release 0.05)",
+        low=0.0,
+    )
     sh_dc: float = option(2.5e-3, "learning rate of the degree-0 spherical-harmonics coefficients", low=0.0)
     sh_rest: float = option(2.5e-3 / 20, "learning rate of the higher spherical-harmonics coefficients", low=0.0)
 
@@ -128,10 +132,16 @@ class TrainConfig:
     ssim_weight: float = option(
         0.2, "loss = (1 - w) L1 + w (1 - SSIM), SSIM with an 11 px Gaussian window", low=0.0, high=1.0
     )
-    init_opacity: float = option(0.1, "opacity of the initial Gaussians, in (0, 1)", low=0.0, high=1.0, low_open=True)
+    init_opacity: float | None = option(
+        None,
+        "opacity of the initial Gaussians, in (0, 1) (none: the strategy's, 0.1, or 0.5 for 3DGS-MCMC)",
+        low=0.0,
+        high=1.0,
+        low_open=True,
+    )
     scale_rule: str = option(
-        "3dgs",
-        "initial scales from the 3 nearest neighbours: 3dgs (arithmetic mean) or cdc (geometric)",
+        "cdc",
+        "initial scales from the 3 nearest neighbours: cdc (geometric mean, the CDC-GS code) or 3dgs (arithmetic)",
         choices=SCALE_RULES,
     )
     antialiased: bool = option(False, "Mip-Splatting opacity compensation in the rasterizer")

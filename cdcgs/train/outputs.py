@@ -212,26 +212,41 @@ def save_complexity_maps(folder: str, views, maps, count: int) -> None:
         Image.fromarray(hf_map.cpu().numpy()).save(os.path.join(folder, f"{view_stem(view.name)}.png"))
 
 
-def correlation_curve(history: dict) -> tuple[list[int], list[float]]:
-    """(steps, Pearson r(Γ, Ψ)) of the densification steps that logged a correlation."""
-    points = [(e["step"], e["correlation"]) for e in history["strategy"] if "correlation" in e]
+# The complexity-density statistics of a densification step (cdcgs.train.cdc.correlations), with
+# the axis label of each; runs of earlier versions logged only the first.
+CORRELATION_KEYS = {
+    "correlation": "Pearson r(Γ, Ψ) (Fig. 4)",
+    "correlation_log_density": "Pearson r(Γ, log Ψ)",
+    "correlation_rank": "Spearman ρ(Γ, Ψ)",
+    "saturated_density": "share of Ψ ≥ 5e5",
+}
+
+
+def correlation_curve(history: dict, key: str = "correlation") -> tuple[list[int], list[float]]:
+    """(steps, values) of statistic ``key`` (:data:`CORRELATION_KEYS`) at the densification steps
+    that logged it."""
+    points = [(e["step"], e[key]) for e in history["strategy"] if key in e]
     return [p[0] for p in points], [p[1] for p in points]
 
 
 def plot_correlation(histories: dict, path: str) -> None:
-    """Pearson correlation of complexity and density at each densification step (CDC-GS Fig. 4b)."""
+    """The complexity-density statistics at each densification step, one panel each (the first
+    is CDC-GS's Fig. 4b), for every run of ``histories`` (label -> history)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 3.8))
-    for label, history in histories.items():
-        steps, values = correlation_curve(history)
-        ax.plot(steps, values, label=label)
-    ax.set(title="complexity-density correlation", xlabel="iteration", ylabel="Pearson r(Gamma, Psi)")
-    ax.grid(alpha=0.3)
-    ax.legend()
+    keys = [k for k in CORRELATION_KEYS if any(correlation_curve(h, k)[0] for h in histories.values())]
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys), 3.8), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        for label, history in histories.items():
+            steps, values = correlation_curve(history, key)
+            ax.plot(steps, values, label=label)
+        ax.set(title=CORRELATION_KEYS[key], xlabel="iteration")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle("complexity and density of the Gaussians at each densification step")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -1,17 +1,20 @@
-"""Named strategy presets: every row of the CDC-GS paper's variants table (except MCMC) as options
-of :class:`cdcgs.train.cdc.CDC`.
+"""Named strategy presets: every row of the CDC-GS paper's variants table as options of
+:class:`cdcgs.train.cdc.CDC`, or of :class:`cdcgs.train.mcmc.MCMC` for the 3DGS-MCMC rows.
 
 Plain data, so that the configuration and the command line can list the names without importing
 any kernel. ``3dgs`` is the baseline: 3DGS's adaptive density control as the 3DGS code runs it,
 through the same class with every CDC-GS part off, so that ``--log-correlation`` measures Γ exactly
-as the CDC-GS presets do.
+as the CDC-GS presets do (every view at every densification step, the same w_max). Every preset
+trains with the CDC-GS code's learning rates and initial scales (the training options' defaults).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 from ..errors import OptionError
 
-__all__ = ["ALIASES", "PRESETS", "canonical_name"]
+__all__ = ["ALIASES", "PRESETS", "PRESET_CLASS", "build_preset", "canonical_name"]
 
 _BASELINE = {
     "cdc_densify": False,
@@ -19,8 +22,8 @@ _BASELINE = {
     "caat": False,
     "periodic_prune": False,
     "log_correlation": False,
-    "complexity_schedule": "online",
 }
+_MCMC = {"cdc_densify": False, "cdc_prune": False, "log_correlation": False, "target_gaussians": 1_000_000}
 
 PRESETS: dict[str, dict] = {
     "3dgs": dict(_BASELINE),
@@ -32,7 +35,12 @@ PRESETS: dict[str, dict] = {
     "cdc-prune-only": {"cdc_densify": False, "caat": False},
     "cdc-reverse": {"reverse": True},
     "cdc-compact": {"centre": "quantile", "rho_prune": 0.5},
+    "mcmc": dict(_MCMC),
+    "mcmc-cdc": {**_MCMC, "cdc_densify": True, "cdc_prune": True, "log_correlation": True},
 }
+
+# The strategy class of each preset that is not CDC (cdcgs.train.strategies.STRATEGY_CLASSES).
+PRESET_CLASS: dict[str, str] = {"mcmc": "MCMC", "mcmc-cdc": "MCMC"}
 
 # Names that earlier versions wrote into run folders: `adc` ran the same rules as `3dgs`.
 ALIASES: dict[str, str] = {"adc": "3dgs"}
@@ -48,3 +56,21 @@ def canonical_name(name: str) -> str:
     if name not in PRESETS:
         raise OptionError(f"unknown strategy {name!r}; known: {', '.join(PRESETS)}")
     return name
+
+
+def build_preset(cls: type, name: str, options: dict | None = None):
+    """Strategy class ``cls`` with preset ``name``'s values, overridden by ``options``.
+
+    Raises:
+        OptionError: an unknown preset, a preset of another class, an option ``cls`` does not
+            have, or a value it refuses.
+    """
+    name = canonical_name(name)
+    if PRESET_CLASS.get(name, "CDC") != cls.__name__:
+        raise OptionError(f"strategy {name!r} is not a {cls.__name__} preset")
+    options = dict(options or {})
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise OptionError(f"strategy {name!r} has no option(s) {unknown}; it has {sorted(known)}")
+    return cls(**{**PRESETS[name], **options})

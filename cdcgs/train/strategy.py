@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import torch
 
@@ -20,7 +20,7 @@ from . import ops
 from .config import check_values, option
 from .model import GaussianModel
 
-__all__ = ["ADC", "StepContext", "Strategy", "strategy_option"]
+__all__ = ["ADC", "StepContext", "Strategy", "StrategyOptions", "strategy_option"]
 
 
 # A strategy hyperparameter: a dataclass field with its help line, choices or range (as the
@@ -61,29 +61,55 @@ class Strategy(Protocol):
     - ``after_backward(ctx, state) -> dict``: after ``backward()``, before the optimizer step:
       accumulate statistics in ``state`` and change the Gaussians (via :mod:`cdcgs.train.ops`);
       returns numbers worth logging (empty most iterations).
+    - ``regularizer(ctx) -> Tensor | None``: after the render, a term added to the loss (None:
+      nothing), e.g. 3DGS-MCMC's opacity and scale penalties.
     - ``refines_at(step) -> bool``: whether ``after_backward`` may change the set of Gaussians or
       their values at iteration ``step`` (the trainer checks the run's numbers first, so that no
       strategy works on NaN).
+    - ``after_step(ctx, state)``: after the optimizer step (e.g. 3DGS-MCMC's position noise).
     - ``config() -> dict``: the name and hyperparameters, for config.json and metrics.json.
     - ``complexity_maps_method``: the method (cdcgs.complexity.METHODS) of the complexity maps
       that the hooks read from ``ctx.complexity_maps``, or None when they read none.
+
+    - ``initial_opacity``: the opacity of the initial Gaussians unless ``--init-opacity`` is given.
     """
 
     complexity_maps_method: str | None
+    initial_opacity: float
 
     def initialize_state(self, model: GaussianModel) -> dict: ...
 
     def before_backward(self, ctx: StepContext, state: dict) -> None: ...
 
+    def regularizer(self, ctx: StepContext) -> torch.Tensor | None: ...
+
     def after_backward(self, ctx: StepContext, state: dict) -> dict: ...
 
     def refines_at(self, step: int) -> bool: ...
 
+    def after_step(self, ctx: StepContext, state: dict) -> None: ...
+
     def config(self) -> dict: ...
 
 
+class StrategyOptions:
+    """What every strategy dataclass shares: its options checked on construction, listed, and
+    recorded with its name."""
+
+    def __post_init__(self):
+        check_values(self)
+
+    def config(self) -> dict:
+        return {"name": type(self).__name__, **asdict(self)}
+
+    @classmethod
+    def options(cls) -> list:
+        """The hyperparameters: dataclass fields with their help (``metadata``)."""
+        return list(fields(cls))
+
+
 @dataclass(kw_only=True)
-class ADC:
+class ADC(StrategyOptions):
     """3DGS adaptive density control (Kerbl et al. 2023), with the AbsGS variant as an option.
 
     Accumulates the norm of each Gaussian's screen-space positional gradient (NDC units) over the
@@ -138,23 +164,28 @@ class ADC:
         0.1, "after the first reset, prune Gaussians larger than this x extent", low=0.0, low_open=True
     )
     max_gaussians: int | None = strategy_option(
-        None, "no densification beyond this many Gaussians (the strongest candidates that fit are kept)", low=1
+        None, "a cap on the count for densification (see --cap-rule; --target-gaussians lands on a count)", low=1
+    )
+    cap_rule: str = strategy_option(
+        "skip",
+        "with --max-gaussians: skip (no growth once the count has reached the cap, as the CDC-GS code's --gs_num; "
+        "a step may pass it) or fill (grow the strongest candidates that fit)",
+        choices=("skip", "fill"),
+    )
+    target_gaussians: int | None = strategy_option(
+        None,
+        "end with exactly this many Gaussians: growth is capped at it (strongest first) and the last "
+        "densification step clones the strongest remaining or prunes the least opaque to land on it "
+        "(3DGS-MCMC: its budget)",
+        low=1,
     )
 
-    def __post_init__(self):
-        check_values(self)
+    # The opacity of the initial Gaussians (3DGS), unless --init-opacity says otherwise.
+    initial_opacity: ClassVar[float] = 0.1
 
     @property
     def complexity_maps_method(self) -> str | None:
         return None
-
-    def config(self) -> dict:
-        return {"name": type(self).__name__, **asdict(self)}
-
-    @classmethod
-    def options(cls) -> list:
-        """The hyperparameters: dataclass fields with their help (``metadata``)."""
-        return list(fields(cls))
 
     def initialize_state(self, model: GaussianModel) -> dict:
         n, device = model.num, model.device
@@ -184,8 +215,14 @@ class ADC:
             log["opacity_reset"] = 1
         return log
 
+    def regularizer(self, ctx: StepContext) -> torch.Tensor | None:
+        return None
+
     def refines_at(self, step: int) -> bool:
         return self.densifies_at(step) or self.resets_at(step)
+
+    def after_step(self, ctx: StepContext, state: dict) -> None:
+        pass
 
     # --- the schedule (iterations from 1; every test strict, as in the INRIA code) --------------
 
@@ -218,13 +255,31 @@ class ADC:
             state["count"] > 0, state["grad_sum"] / state["count"].clamp_min(1), torch.zeros_like(state["grad_sum"])
         )
 
+    def last_densification(self) -> int | None:
+        """The last iteration that densifies (14900 by default), or None when none does."""
+        last = self.densify_until - 1
+        last -= last % self.densify_every
+        return last if last > self.densify_from else None
+
+    def growth_cap(self) -> tuple[int | None, str]:
+        """(cap, rule) of growth: ``target_gaussians`` fills up to it, else ``max_gaussians`` by ``cap_rule``."""
+        if self.target_gaussians is not None:
+            cap = (
+                self.target_gaussians if self.max_gaussians is None else min(self.target_gaussians, self.max_gaussians)
+            )
+            return cap, "fill"
+        return self.max_gaussians, self.cap_rule
+
     def grow_masks(self, ctx: StepContext, state: dict, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Split ``selected`` [N] into (clone, split) by size, under the ``max_gaussians`` cap."""
+        """Split ``selected`` [N] into (clone, split) by size, under the cap (:meth:`growth_cap`)."""
         model = ctx.model
         small = model.scales().max(dim=-1).values <= self.clone_max_scale * ctx.extent
         clone, split = selected & small, selected & ~small
-        if self.max_gaussians is not None:
-            room = self.max_gaussians - model.num
+        cap, rule = self.growth_cap()
+        if cap is not None and rule == "skip" and model.num >= cap:
+            return torch.zeros_like(clone), torch.zeros_like(split)
+        if cap is not None and rule == "fill":
+            room = cap - model.num
             growth = clone.sum() + (self.split_count - 1) * split.sum()
             if growth > room:
                 # Keep the strongest candidates that fit.
@@ -255,11 +310,16 @@ class ADC:
         clone: torch.Tensor,
         split: torch.Tensor,
         prune_extra: torch.Tensor | None = None,
+        prune_after: Callable[[GaussianModel], torch.Tensor] | None = None,
     ) -> dict:
-        """Clone, split, then prune by the rule (plus ``prune_extra`` [N] over the Gaussians before
-        growth); reset the statistics. New Gaussians are judged like 3DGS judges them: by their
-        opacity and world size, with no screen size yet."""
+        """Clone, split, then prune by the rule, plus ``prune_extra`` [N] over the Gaussians before
+        growth and ``prune_after(model)`` over those after it (newborns included); reset the
+        statistics. New Gaussians are judged like 3DGS judges them: by their opacity and world
+        size, with no screen size yet. At the last densification step ``target_gaussians`` is
+        landed on (:meth:`land_on_target`)."""
         model, optimizer = ctx.model, ctx.optimizer
+        score = self.mean_gradient(state)  # of the Gaussians before growth, for landing on the target
+        grown = clone | split
         n_old, n_clone, n_split = model.num, int(clone.sum()), int(split.sum())
         ops.clone(model, optimizer, clone)  # [old, clones]
         split_mask = torch.cat([split, split.new_zeros(n_clone)])
@@ -278,10 +338,38 @@ class ADC:
         prune = self.prune_mask(ctx, max_radius)
         if prune_extra is not None:
             prune |= torch.cat([prune_extra[kept], prune_extra.new_zeros(n_new)])
+        if prune_after is not None:
+            prune |= prune_after(model)
         n_prune = int(prune.sum())
+        # Each survivor's mean gradient before this step; -1 for the newborns and the grown.
+        after = torch.cat([torch.where(grown[kept], -1.0, score[kept]), score.new_full((n_new,), -1.0)])[~prune]
         ops.remove(model, optimizer, prune)
+        log = {"cloned": n_clone, "split": n_split, "pruned": n_prune}
+        if self.target_gaussians is not None and ctx.step == self.last_densification():
+            log.update(self.land_on_target(ctx, after))
         state.update(self.initialize_state(model))
-        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": model.num}
+        return {**log, "gaussians": model.num}
+
+    def land_on_target(self, ctx: StepContext, score: torch.Tensor) -> dict:
+        """Make the count exactly ``target_gaussians``: clone the Gaussians of highest ``score`` [N]
+        (the mean gradient; negative for those grown or born this step, which are not cloned again),
+        or remove the least opaque."""
+        model, target = ctx.model, self.target_gaussians
+        if model.num < target:
+            top = torch.argsort(score, descending=True, stable=True)[: target - model.num]
+            mask = torch.zeros(model.num, dtype=torch.bool, device=model.device)
+            mask[top] = True
+            count = int(mask.sum())
+            # Clones of clones would be needed past twice the count; then the count stays short.
+            ops.clone(model, optimizer=ctx.optimizer, mask=mask)
+            return {"target_cloned": count}
+        if model.num > target:
+            order = torch.argsort(model.opacities().detach(), stable=True)[: model.num - target]
+            mask = torch.zeros(model.num, dtype=torch.bool, device=model.device)
+            mask[order] = True
+            ops.remove(model, ctx.optimizer, mask)
+            return {"target_pruned": int(mask.sum())}
+        return {}
 
     def densify_and_prune(self, ctx: StepContext, state: dict) -> dict:
         selected = self.mean_gradient(state) >= self.grad_threshold

@@ -19,7 +19,6 @@ from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
 from ..render import prepare_camera, rasterize
 from . import outputs
-from .cdc import CDC
 from .config import TrainConfig, background_color, config_to_dict
 from .evaluate import evaluate, lpips_metric
 from .guard import NumericGuard, TrainingDiverged
@@ -28,6 +27,7 @@ from .loss import photometric_loss, psnr
 from .model import GaussianModel
 from .ops import make_optimizer
 from .schedules import position_lr
+from .strategies import make_strategy
 from .strategy import StepContext
 
 __all__ = ["CHECKPOINT_FORMAT", "Interrupted", "Trainer", "TrainingDiverged", "resolve_device"]
@@ -149,7 +149,7 @@ class Trainer:
         )
         # Each training view's camera, checked and built once (the render would redo it every step).
         self.cameras = [prepare_camera(v.viewmat, v.K, v.width, v.height) for v in self.scene.train]
-        self.strategy = CDC.from_preset(config.strategy, self.strategy_options)
+        self.strategy = make_strategy(config.strategy, self.strategy_options)
         # Every random draw of the run comes from these two (torch generators are bound to a
         # device): the device one for strategies, splits and backgrounds, the CPU one for the
         # order of the views.
@@ -162,7 +162,7 @@ class Trainer:
                 self.scene.points,
                 self.scene.colors,
                 max_sh_degree=config.sh_degree,
-                init_opacity=config.init_opacity,
+                init_opacity=self.init_opacity,
                 scale_rule=config.scale_rule,
                 device=self.device,
             )
@@ -192,11 +192,16 @@ class Trainer:
         self.background = torch.tensor(fixed or (0.0, 0.0, 0.0), device=self.device)
         self.lpips = lpips_metric(self.device)
         config_json = {
-            "train": config_to_dict(config),
+            "train": {**config_to_dict(config), "init_opacity": self.init_opacity},
             "strategy": self.strategy.config(),
             "scene": self._scene_summary(),
         }
         outputs.write_json(os.path.join(self.out, outputs.CONFIG), config_json)
+
+    @property
+    def init_opacity(self) -> float:
+        """The initial Gaussians' opacity: ``--init-opacity``, else the strategy's."""
+        return self.config.init_opacity if self.config.init_opacity is not None else self.strategy.initial_opacity
 
     def _scene_summary(self) -> dict:
         s = self.scene
@@ -338,6 +343,9 @@ class Trainer:
             complexity_maps=self.complexity_maps,
         )
         self.strategy.before_backward(ctx, self.strategy_state)
+        regularizer = self.strategy.regularizer(ctx)
+        if regularizer is not None:
+            loss = loss + regularizer
         loss.backward()
         self.guard.record(loss, psnr(image.detach(), target))
         if self.strategy.refines_at(step):
@@ -345,6 +353,7 @@ class Trainer:
         strategy_log = self.strategy.after_backward(ctx, self.strategy_state)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        self.strategy.after_step(ctx, self.strategy_state)
         return strategy_log
 
     def run(self) -> dict:

@@ -90,7 +90,8 @@ class Complexity:
 
     Γ is what the run's ``cdc`` strategy measures (:func:`cdcgs.complexity.complexity_over_views`):
     per view HF(p) w(p) / w_max(p) aggregated over the pixels by ``pixel_aggregation``, then over
-    the views by ``view_aggregation`` ("max" or "mean"). The maps of the views are computed on
+    the views by ``view_aggregation`` ("max" or "mean"), with ``w_max`` as the run had it
+    (:data:`cdcgs.complexity.W_MAX_RULES`; runs older than the option used "weight"). The maps of the views are computed on
     first use and kept (:class:`cdcgs.complexity.ComplexityMaps`, which loads the images). A model
     without training views gets ``unavailable`` (the reason, shown in the page) instead.
     """
@@ -103,21 +104,27 @@ class Complexity:
         *,
         pixel_aggregation: str = "max",
         view_aggregation: str = "max",
+        w_max: str = "alpha",
         unavailable: str | None = None,
     ):
         self.views = list(views)
         self.method = method
         self.pixel_aggregation = pixel_aggregation
         self.view_aggregation = view_aggregation
+        self.w_max = w_max
         self.unavailable = unavailable or (None if self.views else "the model has no training views to measure it on")
         self.maps = None
         if self.unavailable:
             return
-        from ..complexity import AGGREGATIONS, ComplexityMaps
+        from ..complexity import AGGREGATIONS, W_MAX_RULES, ComplexityMaps
 
-        for name, value in (("pixel_aggregation", pixel_aggregation), ("view_aggregation", view_aggregation)):
-            if value not in AGGREGATIONS:
-                self.unavailable = f"the run's {name} {value!r} is not one of {', '.join(AGGREGATIONS)}"
+        for name, value, known in (
+            ("pixel_aggregation", pixel_aggregation, AGGREGATIONS),
+            ("view_aggregation", view_aggregation, AGGREGATIONS),
+            ("w_max", w_max, W_MAX_RULES),
+        ):
+            if value not in known:
+                self.unavailable = f"the run's {name} {value!r} is not one of {', '.join(known)}"
                 return
         try:
             self.maps = ComplexityMaps(self.views, method, device)
@@ -134,6 +141,7 @@ class Complexity:
             device,
             pixel_aggregation=strategy.get("pixel_aggregation", "max"),
             view_aggregation=strategy.get("view_aggregation", "max"),
+            w_max=strategy.get("w_max", "weight"),
         )
 
     def compute(self, snapshot: Snapshot, antialiased: bool = False) -> torch.Tensor:
@@ -158,6 +166,7 @@ class Complexity:
             snapshot.means.device,
             pixel_aggregation=self.pixel_aggregation,
             view_aggregation=self.view_aggregation,
+            w_max=self.w_max,
         )
 
 

@@ -1,0 +1,221 @@
+"""3DGS-MCMC (Kheradmand et al., NeurIPS 2024), and CDC-GS's consistency draws on top of it.
+
+Gaussians are samples of a distribution, and densification is a Markov chain step rather than a
+heuristic. Every ``refine_every`` iterations between ``refine_from`` and ``refine_until``:
+
+- relocation: the dead Gaussians (opacity <= ``dead_opacity``) are moved onto live ones drawn with
+  probability proportional to opacity (with replacement). A live Gaussian drawn c times ends as
+  n = c + 1 copies at one place, with opacity o' = 1 - (1 - o)^(1/n) and scales
+  s' = o / S(n, o') * s, S(n, o') = sum_{i=1}^{n} sum_{k=0}^{i-1} C(i-1, k) (-1)^k o'^(k+1) / sqrt(k+1)
+  (the paper's Eq. 9): n copies composite to the original's opacity at its centre and to its
+  integrated opacity along a ray, so the rendered image is unchanged in expectation;
+- growth: min(budget, (1 + ``growth_rate``) N) - N new Gaussians drawn the same way (copies
+  appended), so the count grows 5% per step until it reaches the budget (``target_gaussians``).
+
+After every optimizer step the means get noise R S^2 R^T z * sigmoid(-k (o - t)) * noise_lr * lr
+(z ~ N(0, I), lr the current position learning rate): Langevin exploration for transparent
+Gaussians, almost none for opaque ones. The loss gets ``opacity_reg`` mean(opacity) +
+``scale_reg`` mean(scale). No opacity reset, no gradient threshold.
+
+With the consistency draws on (the ``mcmc-cdc`` preset; the rebuttal says only "CDC densification
+and pruning, no CAAT, no periodic prune"), at each refinement step Γ and Ψ are measured as CDC-GS
+does; the drawn flat-but-crowded Gaussians join the dead set (relocated, not deleted) and the drawn
+complex-but-sparse ones become relocation sources, once each, before the opacity-weighted draws
+fill the rest. The count is MCMC's, so it stays at the budget. docs/cdc-gs.md has the design.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+
+from ..errors import OptionError
+from ..geometry import quat_to_rotation
+from . import ops
+from .cdc import Consistency
+from .model import GaussianModel
+from .strategy import StepContext, StrategyOptions, strategy_option
+
+__all__ = ["MCMC", "copy_weights", "position_noise", "relocation"]
+
+
+def copy_weights(max_copies: int, dtype=torch.float64, device="cpu") -> torch.Tensor:
+    """[max_copies, max_copies] W with W[n-1, k] = sum_{i=1}^{n} C(i-1, k) (-1)^k / sqrt(k+1), so
+    that S(n, o') = sum_k W[n-1, k] o'^(k+1)."""
+    terms = torch.zeros(max_copies, max_copies, dtype=torch.float64)
+    for i in range(max_copies):  # i = (row i of the sum) - 1
+        for k in range(i + 1):
+            terms[i, k] = math.comb(i, k) * (-1.0) ** k / math.sqrt(k + 1)
+    return terms.cumsum(0).to(dtype=dtype, device=device)
+
+
+def relocation(
+    opacities: torch.Tensor, scales: torch.Tensor, copies: torch.Tensor, weights: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(opacity [M], scales [M, 3]) of each of n = ``copies`` [M] Gaussians that replace one of
+    opacity ``opacities`` [M] and scales ``scales`` [M, 3] at the same place (3DGS-MCMC Eq. 9),
+    computed in float64. ``weights``: :func:`copy_weights` (its size caps n)."""
+    n = copies.long().clamp(1, weights.shape[0])
+    o = opacities.double()
+    new_opacity = 1.0 - (1.0 - o) ** (1.0 / n.double())
+    powers = new_opacity[:, None] ** torch.arange(1, weights.shape[0] + 1, device=o.device, dtype=torch.float64)
+    total = (powers * weights.to(o.device)[n - 1]).sum(-1)
+    new_scales = (o / total)[:, None] * scales.double()
+    return new_opacity, new_scales
+
+
+def position_noise(
+    model: GaussianModel, lr: float, noise_lr: float, k: float, t: float, generator: torch.Generator
+) -> torch.Tensor:
+    """[N, 3] 3DGS-MCMC's perturbation of the means: Σ z sigmoid(-k (o - t)) noise_lr lr, with
+    Σ = R S^2 R^T of each Gaussian and z ~ N(0, I) drawn from ``generator``."""
+    rotation = quat_to_rotation(model.params["quats"].detach())
+    scales = model.scales().detach()
+    covariance = rotation @ torch.diag_embed(scales * scales) @ rotation.transpose(-1, -2)
+    gate = torch.sigmoid(-k * (model.opacities().detach() - t))
+    z = torch.randn(model.num, 3, device=model.device, generator=generator)
+    return (covariance @ (z * (gate * noise_lr * lr)[:, None])[..., None])[..., 0]
+
+
+@dataclass(kw_only=True)
+class MCMC(Consistency, StrategyOptions):
+    """3DGS-MCMC, with CDC-GS's consistency draws as an option (on by default in this class; the
+    ``mcmc`` preset turns them off, ``mcmc-cdc`` keeps them)."""
+
+    # The 3DGS-MCMC code starts its Gaussians at opacity 0.5 (``--init-opacity`` overrides).
+    initial_opacity: ClassVar[float] = 0.5
+
+    target_gaussians: int | None = strategy_option(
+        None, "the budget: the count grows to it and stays (3DGS-MCMC's cap_max)", low=1
+    )
+    refine_from: int = strategy_option(500, "first relocation and growth after this iteration", low=0)
+    refine_until: int = strategy_option(25_000, "relocate and grow before this iteration (not at it)", low=0)
+    refine_every: int = strategy_option(100, "iterations between relocation and growth steps", low=1)
+    growth_rate: float = strategy_option(
+        0.05, "each growth step adds this fraction of N, up to the budget", low=0.0, low_open=True
+    )
+    dead_opacity: float = strategy_option(
+        0.005, "Gaussians at or below this opacity are dead: relocated onto live ones", low=0.0, high=1.0
+    )
+    max_copies: int = strategy_option(
+        51, "a Gaussian relocated to more than this many copies counts as this many", low=1
+    )
+    noise_lr: float = strategy_option(5e5, "scale of the position noise, times the position learning rate", low=0.0)
+    noise_k: float = strategy_option(100.0, "steepness k of the noise gate sigmoid(-k (opacity - t))", low=0.0)
+    noise_t: float = strategy_option(0.005, "opacity t at which the noise gate is one half", low=0.0, high=1.0)
+    noise_until: int | None = strategy_option(
+        None, "no position noise from this iteration on (none: noise to the end)", low=1
+    )
+    opacity_reg: float = strategy_option(0.01, "loss weight of the mean opacity (L1)", low=0.0)
+    scale_reg: float = strategy_option(0.01, "loss weight of the mean scale (L1)", low=0.0)
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.target_gaussians is None:
+            raise OptionError("3DGS-MCMC needs a budget: --target-gaussians N (its final count)")
+
+    def initialize_state(self, model: GaussianModel) -> dict:
+        return self.consistency_state(model)
+
+    # --- the schedule -------------------------------------------------------------------------
+
+    def refines_at(self, step: int) -> bool:
+        """Whether iteration ``step`` relocates and grows (600, 700, ..., 24900 by default)."""
+        return self.refine_from < step < self.refine_until and step % self.refine_every == 0
+
+    def accumulates_at(self, step: int) -> bool:
+        return step < self.refine_until
+
+    # --- hooks --------------------------------------------------------------------------------
+
+    def before_backward(self, ctx: StepContext, state: dict) -> None:
+        pass
+
+    def regularizer(self, ctx: StepContext) -> torch.Tensor | None:
+        if self.opacity_reg == 0 and self.scale_reg == 0:
+            return None
+        model = ctx.model
+        return self.opacity_reg * model.opacities().mean() + self.scale_reg * model.scales().mean()
+
+    def after_backward(self, ctx: StepContext, state: dict) -> dict:
+        if self.accumulates_at(ctx.step):
+            self.accumulate_complexity(ctx, state)
+        if not self.refines_at(ctx.step):
+            return {}
+        with torch.no_grad():
+            log = self.relocate(ctx, state)
+            log.update(self.grow(ctx))
+        state.update(self.initialize_state(ctx.model))
+        log["gaussians"] = ctx.model.num
+        return log
+
+    def after_step(self, ctx: StepContext, state: dict) -> None:
+        if self.noise_until is not None and ctx.step >= self.noise_until:
+            return
+        lr = next(g["lr"] for g in ctx.optimizer.param_groups if g["name"] == "means")
+        with torch.no_grad():
+            noise = position_noise(ctx.model, lr, self.noise_lr, self.noise_k, self.noise_t, ctx.generator)
+            ctx.model.params["means"].add_(noise)
+
+    # --- pieces -------------------------------------------------------------------------------
+
+    def _weights(self, device) -> torch.Tensor:
+        return copy_weights(self.max_copies, device=device)
+
+    def _copy(self, ctx: StepContext, sources: torch.Tensor) -> dict:
+        """New pre-activation opacity and log-scales of each source [M] (indices, repeats counted)."""
+        model = ctx.model
+        copies = torch.bincount(sources, minlength=model.num)[sources] + 1
+        opacity, scales = relocation(
+            model.opacities().detach()[sources], model.scales().detach()[sources], copies, self._weights(model.device)
+        )
+        opacity = opacity.clamp(self.dead_opacity, 1.0 - torch.finfo(torch.float32).eps)
+        return {"opacity_logits": torch.logit(opacity).float(), "log_scales": scales.log().float()}
+
+    def relocate(self, ctx: StepContext, state: dict) -> dict:
+        """Move the dead Gaussians (and with the consistency draws, the drawn flat-but-crowded)
+        onto sources: the drawn complex-but-sparse first, then live ones by opacity."""
+        model = ctx.model
+        opacity = model.opacities().detach()
+        dead = opacity <= self.dead_opacity
+        log = {}
+        favoured = torch.zeros_like(dead)
+        if self.needs_complexity:
+            gamma, psi, stats = self.measure(ctx, state)
+            log.update(stats)
+            favoured, crowded, draws_log = self.consistency_draws(ctx, gamma, psi)
+            log.update(draws_log)
+            dead |= crowded
+            favoured &= ~dead
+        n_dead = int(dead.sum())
+        log["relocated"] = n_dead
+        alive = ~dead
+        if n_dead == 0 or not bool(alive.any()):
+            return log
+        targets = dead.nonzero()[:, 0]
+        first = favoured.nonzero()[:, 0]
+        first = first[torch.randperm(first.shape[0], device=first.device, generator=ctx.generator)[:n_dead]]
+        rest = n_dead - first.shape[0]
+        alive_index = alive.nonzero()[:, 0]
+        sources = first
+        if rest > 0:
+            drawn = torch.multinomial(opacity[alive_index], rest, replacement=True, generator=ctx.generator)
+            sources = torch.cat([first, alive_index[drawn]])
+        ops.relocate(model, ctx.optimizer, targets, sources, self._copy(ctx, sources))
+        return log
+
+    def grow(self, ctx: StepContext) -> dict:
+        """Add min(budget, (1 + growth_rate) N) - N copies of Gaussians drawn by opacity."""
+        model = ctx.model
+        target = min(self.target_gaussians, int((1.0 + self.growth_rate) * model.num))
+        count = max(0, target - model.num)
+        if count == 0:
+            return {"added": 0}
+        sources = torch.multinomial(model.opacities().detach(), count, replacement=True, generator=ctx.generator)
+        values = self._copy(ctx, sources)
+        ops.relocate(model, ctx.optimizer, sources, sources, values)  # the sources' new opacity and scales
+        ops.append(model, ctx.optimizer, {name: p.detach()[sources] for name, p in model.params.items()})
+        return {"added": count}

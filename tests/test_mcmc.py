@@ -1,0 +1,179 @@
+"""3DGS-MCMC: the relocation formulas and the position noise against float64 references, the
+relocation and growth on hand-built states, and MCMC (with and without CDC) in training runs."""
+
+import math
+
+import numpy as np
+import pytest
+import reference
+import torch
+from helpers import DEFAULT_DEVICE, context, hand_model, interrupt_at, moments, tiny_config
+
+from cdcgs.train.mcmc import MCMC, copy_weights, position_noise, relocation
+from cdcgs.train.strategies import make_strategy
+from cdcgs.train.trainer import Trainer
+
+
+def line_integral_of_copies(opacity: float, scale: float, n: int) -> float:
+    """∫ 1 - (1 - o e^(-x²/2s²))^n dx by the trapezoid rule in float64: the opacity that n copies
+    stacked at one place put on a line through their centre."""
+    x = np.linspace(-12 * scale, 12 * scale, 400_001)
+    y = 1.0 - (1.0 - opacity * np.exp(-0.5 * (x / scale) ** 2)) ** n
+    return float(np.trapezoid(y, x))
+
+
+def test_copy_weights_are_the_papers_double_sum():
+    weights = copy_weights(12)
+    for n in range(1, 13):
+        for o in (0.02, 0.4, 0.93):
+            direct = sum(
+                math.comb(i - 1, k) * (-1) ** k * o ** (k + 1) / math.sqrt(k + 1)
+                for i in range(1, n + 1)
+                for k in range(i)
+            )
+            powers = torch.tensor([o ** (k + 1) for k in range(12)], dtype=torch.float64)
+            assert float(weights[n - 1] @ powers) == pytest.approx(direct, rel=1e-12, abs=1e-15)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
+def test_relocated_copies_keep_the_opacity_at_the_centre_and_along_a_line(n):
+    """3DGS-MCMC's requirement: n copies at one place render as the original did, checked
+    against an independent float64 quadrature (not the binomial sum of the implementation)."""
+    opacities = torch.tensor([0.01, 0.2, 0.6, 0.9, 0.99])
+    scales = torch.tensor([[0.3, 1.0, 2.0]]).expand(5, 3)
+    new_opacity, new_scales = relocation(opacities, scales, torch.full((5,), n), copy_weights(51))
+    assert new_opacity.dtype == torch.float64
+    # At the centre: n layers of opacity o' let (1 - o')^n through, as one of opacity o.
+    torch.testing.assert_close(1 - (1 - new_opacity) ** n, opacities.double(), rtol=1e-12, atol=1e-12)
+    for i, o in enumerate(opacities.tolist()):
+        for axis in range(3):
+            s, s_new = scales[i, axis].item(), new_scales[i, axis].item()
+            original = o * s * math.sqrt(2 * math.pi)
+            assert line_integral_of_copies(new_opacity[i].item(), s_new, n) == pytest.approx(original, rel=1e-9)
+    if n == 1:
+        torch.testing.assert_close(new_scales, scales.double())
+
+
+def test_position_noise_matches_a_float64_reference():
+    model, _ = hand_model()
+    with torch.no_grad():
+        model.params["quats"][:] = torch.nn.functional.normalize(
+            torch.randn(6, 4, generator=torch.Generator().manual_seed(1)), dim=-1
+        )
+        model.params["opacity_logits"][:] = torch.logit(torch.tensor([0.001, 0.004, 0.005, 0.006, 0.05, 0.9]))
+    generator = torch.Generator().manual_seed(5)
+    replay = torch.Generator().manual_seed(5)
+    noise = position_noise(model, lr=1.6e-4 * 3.0, noise_lr=5e5, k=100.0, t=0.005, generator=generator)
+    z = torch.randn(6, 3, generator=replay).double()
+    rotation = reference.quat_to_matrix(model.params["quats"].detach().double())
+    scales = model.params["log_scales"].detach().double().exp()
+    opacity = torch.sigmoid(model.params["opacity_logits"].detach().double())
+    expected = torch.zeros(6, 3, dtype=torch.float64)
+    for i in range(6):
+        covariance = rotation[i] @ torch.diag(scales[i] ** 2) @ rotation[i].T
+        gate = 1 / (1 + math.exp(-100 * ((1 - opacity[i].item()) - (1 - 0.005))))  # the MCMC code's op_sigmoid
+        expected[i] = covariance @ z[i] * gate * 5e5 * 1.6e-4 * 3.0
+    torch.testing.assert_close(noise.double(), expected, rtol=1e-4, atol=1e-12)
+    assert noise[5].abs().max() < 1e-20 < noise[0].abs().max()  # opaque Gaussians stay put
+
+
+def test_regularizer_is_the_mean_opacity_and_scale():
+    model, optimizer = hand_model()
+    strategy = make_strategy("mcmc", {"opacity_reg": 0.01, "scale_reg": 0.02})
+    term = strategy.regularizer(context(model, optimizer, None, step=1))
+    expected = 0.01 * model.opacities().mean() + 0.02 * model.scales().mean()
+    torch.testing.assert_close(term, expected)
+    term.backward()
+    o = model.opacities().detach()
+    torch.testing.assert_close(model.params["opacity_logits"].grad, 0.01 * o * (1 - o) / 6)
+    assert make_strategy("mcmc", {"opacity_reg": 0.0, "scale_reg": 0.0}).regularizer(None) is None
+
+
+def test_relocation_moves_the_dead_onto_live_gaussians():
+    model, optimizer = hand_model()  # Gaussian 5 (opacity 0.001) is dead
+    with torch.no_grad():
+        model.params["opacity_logits"][2] = math.log(0.004 / 0.996)  # and 2
+    before = {name: p.detach().clone() for name, p in model.params.items()}
+    strategy = make_strategy("mcmc", {"target_gaussians": 6})
+    log = strategy.after_backward(context(model, optimizer, None, step=600, seed=3), strategy.initialize_state(model))
+    assert log["relocated"] == 2 and log["added"] == 0 and model.num == 6
+    means = model.params["means"].detach()
+    live = [0, 1, 3, 4]
+    sources = [int(means[t, 0].item()) for t in (2, 5)]  # the targets now sit on their sources
+    assert all(s in live for s in sources)
+    copies = {s: sources.count(s) + 1 for s in sources}
+    for s, n in copies.items():
+        o, scale = relocation(
+            torch.tensor([0.5]), before["log_scales"][s : s + 1].exp(), torch.tensor([n]), copy_weights(51)
+        )
+        for index in [s] + [t for t, src in zip((2, 5), sources) if src == s]:
+            assert model.opacities()[index].item() == pytest.approx(o.item(), rel=1e-5)
+            torch.testing.assert_close(model.scales()[index].detach().double(), scale[0], rtol=1e-5, atol=0)
+            for name in model.params:
+                assert moments(optimizer, name)["exp_avg"][index].abs().sum() == 0
+    untouched = [i for i in live if i not in copies]
+    for name, p in model.params.items():
+        torch.testing.assert_close(p[untouched].detach(), before[name][untouched])
+
+
+@pytest.mark.parametrize("budget, added", [(100, 2), (41, 1), (40, 0)])
+def test_growth_adds_five_percent_up_to_the_budget(budget, added):
+    model, optimizer = hand_model(40)
+    with torch.no_grad():
+        model.params["opacity_logits"][:] = 0.0  # all alive, opacity 0.5
+    strategy = make_strategy("mcmc", {"target_gaussians": budget})
+    log = strategy.grow(context(model, optimizer, None, step=600))
+    assert log["added"] == added == min(budget, int(1.05 * 40)) - 40 and model.num == 40 + added
+    # The copies sit on their sources, which share their new, lower opacity.
+    for i in range(40, model.num):
+        source = int(model.params["means"][i, 0].item())
+        assert model.opacities()[i].item() == pytest.approx(model.opacities()[source].item())
+        assert model.opacities()[i].item() < 0.5
+
+
+def test_mcmc_grows_to_its_budget_and_stays(tiny_scene, tmp_path):
+    options = {"refine_from": 10, "refine_until": 110, "refine_every": 10, "target_gaussians": 1900}
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path, strategy="mcmc", iters=120), options)
+    result = trainer.run()
+    counts = [(e["step"], e["gaussians"]) for e in trainer.history["strategy"]]
+    n = 1500
+    for step, count in counts:  # min(budget, 1.05 N) at every step, from 1500 points
+        n = min(1900, int(1.05 * n))
+        assert count == n, (step, count)
+    assert result["num_gaussians"] == 1900 and trainer.init_opacity == 0.5
+    assert all(e["relocated"] >= 0 for e in trainer.history["strategy"])
+
+
+def test_mcmc_cdc_relocates_its_drawn_gaussians_and_keeps_the_budget(tiny_scene, tmp_path):
+    options = {"refine_from": 10, "refine_until": 70, "refine_every": 10, "target_gaussians": 1600}
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path, strategy="mcmc-cdc", iters=80), options)
+    result = trainer.run()
+    entries = trainer.history["strategy"]
+    assert [e["step"] for e in entries] == [20, 30, 40, 50, 60]
+    for e in entries:
+        assert -1 <= e["correlation"] <= 1 and e["cdc_prune"] > 0 and e["cdc_densify"] > 0
+        assert e["relocated"] >= e["cdc_prune"], "the drawn flat-but-crowded are relocated, not deleted"
+    assert [e["gaussians"] for e in entries][1:] == [1600] * 4 and result["num_gaussians"] == 1600
+    assert "CAAT" not in str(result["strategy"]) and "periodic_prune" not in result["strategy"]
+
+
+@pytest.mark.skipif(DEFAULT_DEVICE != "cpu", reason="bitwise repeatable on the CPU only")
+def test_an_mcmc_run_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
+    options = {"refine_from": 5, "refine_until": 30, "refine_every": 5, "target_gaussians": 1700}
+    straight = Trainer(tiny_config(tiny_scene, tmp_path / "a", strategy="mcmc-cdc", iters=24), options)
+    straight.run()
+    with monkeypatch.context() as patch:
+        interrupt_at(patch, 12)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(tiny_config(tiny_scene, tmp_path / "b", strategy="mcmc-cdc", iters=24), options).run()
+    resumed = Trainer(tiny_config(tiny_scene, tmp_path / "b", strategy="mcmc-cdc", iters=24, resume=True), options)
+    resumed.run()
+    for name, p in straight.model.params.items():
+        assert torch.equal(resumed.model.params[name], p), name
+
+
+def test_mcmc_options_are_checked():
+    with pytest.raises(ValueError, match="--growth-rate must be in"):
+        MCMC(target_gaussians=10, growth_rate=0.0)
+    with pytest.raises(ValueError, match="--noise-t must be in"):
+        make_strategy("mcmc", {"noise_t": 2.0})
