@@ -165,7 +165,7 @@ def cmd_train(args) -> int:
     options = {
         k[len(STRATEGY_PREFIX) :]: v for k, v in values.items() if k.startswith(STRATEGY_PREFIX) and v is not None
     }
-    make_strategy(config.strategy, options)  # refuse bad options before the scene loads
+    make_strategy(config.strategy, options).check(config.iters)  # refuse bad options before the scene loads
     resolve_device(config.device)
     callbacks = []
     if args.view:

@@ -133,14 +133,41 @@ def test_presets_cover_the_variants_table():
 
 
 def test_the_cdc_presets_default_to_the_authors_settings():
-    from cdcgs.train.config import TrainConfig
+    from cdcgs.train.config import LearningRates, TrainConfig, resolve_defaults
+    from cdcgs.train.strategies import make_strategy
 
     cdc, baseline = CDC.from_preset("cdc"), CDC.from_preset("3dgs", {"log_correlation": True})
     assert cdc.w_max == "alpha" and not cdc.racy_max and cdc.periodic_prune_newborns and cdc.cap_rule == "skip"
     # The baseline measures Γ as CDC does: every view at each densification step, the same w_max.
     assert (baseline.complexity_schedule, baseline.w_max) == (cdc.complexity_schedule, cdc.w_max) == ("full", "alpha")
-    config = TrainConfig()  # one set of learning rates and initial scales for every preset
-    assert config.lr.opacity_logits == 0.025 and config.scale_rule == "cdc" and config.init_opacity is None
+    # One set of learning rates and initial scales for every ADC-family preset, the CDC-GS code's...
+    for name in ("3dgs", "cdc", "cdc-prune-only"):
+        config = resolve_defaults(TrainConfig(), CDC.from_preset(name))
+        assert (config.lr.opacity_logits, config.scale_rule, config.init_scale, config.init_opacity) == (
+            0.025,
+            "cdc",
+            1.0,
+            0.1,
+        )
+    # ... 3DGS-MCMC's own, and what the user sets wins.
+    mcmc = make_strategy("mcmc")
+    config = resolve_defaults(TrainConfig(), mcmc)
+    assert (config.lr.opacity_logits, config.scale_rule, config.init_scale, config.init_opacity) == (
+        0.05,
+        "3dgs",
+        0.1,
+        0.5,
+    )
+    mine = TrainConfig(lr=LearningRates(opacity_logits=0.01), scale_rule="cdc", init_scale=2.0, init_opacity=0.3)
+    config = resolve_defaults(mine, mcmc)
+    assert (config.lr.opacity_logits, config.scale_rule, config.init_scale, config.init_opacity) == (
+        0.01,
+        "cdc",
+        2.0,
+        0.3,
+    )
+    with pytest.raises(ValueError, match="needs --pixel-aggregation max"):
+        CDC.from_preset("cdc", {"racy_max": True, "pixel_aggregation": "mean"})
 
 
 @pytest.mark.parametrize("newborns", [True, False])

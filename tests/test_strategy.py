@@ -283,6 +283,26 @@ def test_the_cap_skips_growth_once_reached_as_the_cdc_gs_code_or_fills():
     assert (log["cloned"], log["split"]) == (1, 0)
 
 
+def test_a_target_count_is_refused_where_it_cannot_act():
+    strategy = make_strategy("cdc", {"target_gaussians": 1000})
+    strategy.check(30_000)
+    with pytest.raises(ValueError, match="last densification step, 14900, is after the run's 7000 iterations"):
+        strategy.check(7000)
+    with pytest.raises(ValueError, match="no iteration densifies"):
+        make_strategy("3dgs", {"target_gaussians": 10, "densify_until": 400}).check(30_000)
+    with pytest.raises(ValueError, match="above --max-gaussians"):
+        make_strategy("3dgs", {"target_gaussians": 10, "max_gaussians": 5})
+    make_strategy("3dgs", {"densify_until": 400}).check(30_000)  # no target: nothing to refuse
+
+
+def test_a_target_more_than_twice_away_is_logged_short():
+    model, optimizer = hand_model()
+    strategy = ADC(target_gaussians=30, reset_every=30_000)
+    log = strategy.densify_and_prune(context(model, optimizer, None, step=14_900), _ranked_state(model, [0.0] * 6))
+    # 6 - 1 pruned = 5, cloned to 10: still 20 short.
+    assert (log["target_cloned"], log["target_short"], model.num) == (5, 20, 10)
+
+
 @pytest.mark.parametrize("target", [4, 5, 8, 9])
 def test_target_count_is_landed_on_at_the_last_densification_step(target):
     model, optimizer = hand_model()

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from ..complexity import AGGREGATIONS, METHODS, W_MAX_RULES, ViewComplexity, complexity_over_views
+from ..errors import OptionError
 from ..neighbors import density
 from .presets import build_preset
 from .strategy import ADC, StepContext, strategy_option
@@ -161,6 +162,11 @@ class Consistency:
     log_correlation: bool = strategy_option(
         True, "log r(Γ, Ψ), r(Γ, log Ψ), Spearman ρ and the share of saturated Ψ at every densification step"
     )
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.racy_max and self.pixel_aggregation != "max":
+            raise OptionError("--racy-max emulates a racy max: it needs --pixel-aggregation max")
 
     @property
     def needs_complexity(self) -> bool:

@@ -21,6 +21,7 @@ __all__ = [
     "config_from_dict",
     "config_to_dict",
     "option",
+    "resolve_defaults",
 ]
 
 BACKGROUNDS = ("black", "white", "random")
@@ -59,7 +60,7 @@ def check_values(instance, flag_prefix: str = "") -> None:
         value = getattr(instance, f.name)
         flag = "--" + (flag_prefix + f.name).replace("_", "-")
         choices = f.metadata.get("choices")
-        if choices is not None and value not in choices:
+        if choices is not None and value is not None and value not in choices:
             raise OptionError(f"{flag} must be one of {', '.join(map(str, choices))}, got {value!r}")
         if isinstance(value, float) and not math.isfinite(value):
             raise OptionError(f"{flag} must be a finite number, got {value}")
@@ -102,9 +103,9 @@ class LearningRates:
     )
     log_scales: float = option(5e-3, "learning rate of the log scales", low=0.0)
     quats: float = option(1e-3, "learning rate of the rotations (quaternions)", low=0.0)
-    opacity_logits: float = option(
-        2.5e-2,
-        "learning rate of the opacity logits (0.025 as the CDC-GS and current INRIA code; 3DGS's first release 0.05)",
+    opacity_logits: float | None = option(
+        None,
+        "learning rate of the opacity logits (none: the strategy's, 0.025 as the CDC-GS and current INRIA code; 0.05 for 3DGS-MCMC, as 3DGS's first release)",
         low=0.0,
     )
     sh_dc: float = option(2.5e-3, "learning rate of the degree-0 spherical-harmonics coefficients", low=0.0)
@@ -139,10 +140,16 @@ class TrainConfig:
         high=1.0,
         low_open=True,
     )
-    scale_rule: str = option(
-        "cdc",
-        "initial scales from the 3 nearest neighbours: cdc (geometric mean, the CDC-GS code) or 3dgs (arithmetic)",
+    scale_rule: str | None = option(
+        None,
+        "initial scales from the 3 nearest neighbours: cdc (geometric mean, the CDC-GS code) or 3dgs (arithmetic) (none: the strategy's, cdc; 3dgs for 3DGS-MCMC)",
         choices=SCALE_RULES,
+    )
+    init_scale: float | None = option(
+        None,
+        "factor on the initial scales (none: the strategy's, 1; 0.1 for 3DGS-MCMC)",
+        low=0.0,
+        low_open=True,
     )
     antialiased: bool = option(False, "Mip-Splatting opacity compensation in the rasterizer")
     lr: LearningRates = field(default_factory=LearningRates, metadata={"help": "learning rates"})
@@ -167,6 +174,22 @@ class TrainConfig:
         check_values(self)
         if self.init_opacity == 1.0:  # its logit is infinite
             raise OptionError("--init-opacity must be in (0, 1), got 1.0")
+
+
+def resolve_defaults(config: TrainConfig, strategy) -> TrainConfig:
+    """``config`` with every option left at none (``init_opacity``, ``scale_rule``, ``init_scale``,
+    ``lr.opacity_logits``) set to ``strategy``'s value (its ``training_defaults`` dict)."""
+    defaults = strategy.training_defaults
+    lr = config.lr
+    if lr.opacity_logits is None:
+        lr = dataclasses.replace(lr, opacity_logits=defaults["opacity_lr"])
+    return dataclasses.replace(
+        config,
+        lr=lr,
+        init_opacity=defaults["init_opacity"] if config.init_opacity is None else config.init_opacity,
+        scale_rule=defaults["scale_rule"] if config.scale_rule is None else config.scale_rule,
+        init_scale=defaults["init_scale"] if config.init_scale is None else config.init_scale,
+    )
 
 
 def config_to_dict(config: TrainConfig) -> dict:

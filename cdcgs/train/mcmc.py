@@ -85,8 +85,14 @@ class MCMC(Consistency, StrategyOptions):
     """3DGS-MCMC, with CDC-GS's consistency draws as an option (on by default in this class; the
     ``mcmc`` preset turns them off, ``mcmc-cdc`` keeps them)."""
 
-    # The 3DGS-MCMC code starts its Gaussians at opacity 0.5 (``--init-opacity`` overrides).
-    initial_opacity: ClassVar[float] = 0.5
+    # The 3DGS-MCMC code's: opacity 0.5, 3DGS's arithmetic-mean scales times 0.1, opacity learning
+    # rate 0.05 (its create_from_pcd and arguments; gsplat's mcmc settings agree).
+    training_defaults: ClassVar[dict] = {
+        "init_opacity": 0.5,
+        "scale_rule": "3dgs",
+        "init_scale": 0.1,
+        "opacity_lr": 0.05,
+    }
 
     target_gaussians: int | None = strategy_option(
         None, "the budget: the count grows to it and stays (3DGS-MCMC's cap_max)", low=1
@@ -119,6 +125,9 @@ class MCMC(Consistency, StrategyOptions):
 
     def initialize_state(self, model: GaussianModel) -> dict:
         return self.consistency_state(model)
+
+    def check(self, total_steps: int) -> None:
+        pass
 
     # --- the schedule -------------------------------------------------------------------------
 
@@ -191,10 +200,11 @@ class MCMC(Consistency, StrategyOptions):
             dead |= crowded
             favoured &= ~dead
         n_dead = int(dead.sum())
-        log["relocated"] = n_dead
         alive = ~dead
         if n_dead == 0 or not bool(alive.any()):
+            log["relocated"] = 0
             return log
+        log["relocated"] = n_dead
         targets = dead.nonzero()[:, 0]
         first = favoured.nonzero()[:, 0]
         first = first[torch.randperm(first.shape[0], device=first.device, generator=ctx.generator)[:n_dead]]

@@ -38,15 +38,17 @@ class GaussianModel:
         max_sh_degree: int = 3,
         init_opacity: float = 0.1,
         scale_rule: str = "3dgs",
+        scale_factor: float = 1.0,
         device="cpu",
     ) -> GaussianModel:
         """Gaussians at the points [P, 3] with their uint8 colours [P, 3]: scales from the 3 nearest
-        neighbours (``scale_rule`` "3dgs" or "cdc"), identity rotations, opacity 0.1, degree-0 SH."""
+        neighbours (``scale_rule`` "3dgs" or "cdc") times ``scale_factor``, identity rotations,
+        opacity ``init_opacity``, degree-0 SH."""
         points = points.to(device, torch.float32).contiguous()
         n = points.shape[0]
         if n < 4:
             raise ValueError(f"need at least 4 initial points to measure neighbour distances, got {n}")
-        scales = initial_scales(points, scale_rule)
+        scales = initial_scales(points, scale_rule) * scale_factor
         quats = torch.zeros(n, 4, device=device)
         quats[:, 0] = 1.0
         rgb = colors.to(device, torch.float32) / 255.0

@@ -16,6 +16,7 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import torch
 
+from ..errors import OptionError
 from . import ops
 from .config import check_values, option
 from .model import GaussianModel
@@ -71,11 +72,13 @@ class Strategy(Protocol):
     - ``complexity_maps_method``: the method (cdcgs.complexity.METHODS) of the complexity maps
       that the hooks read from ``ctx.complexity_maps``, or None when they read none.
 
-    - ``initial_opacity``: the opacity of the initial Gaussians unless ``--init-opacity`` is given.
+    - ``training_defaults``: the values of the training options that a run leaves at none
+      (``init_opacity``, ``scale_rule``, ``init_scale``, ``opacity_lr``), e.g. 3DGS-MCMC's.
+    - ``check(total_steps)``: refuse (OptionError) options that cannot act in a run of that length.
     """
 
     complexity_maps_method: str | None
-    initial_opacity: float
+    training_defaults: dict
 
     def initialize_state(self, model: GaussianModel) -> dict: ...
 
@@ -88,6 +91,8 @@ class Strategy(Protocol):
     def refines_at(self, step: int) -> bool: ...
 
     def after_step(self, ctx: StepContext, state: dict) -> None: ...
+
+    def check(self, total_steps: int) -> None: ...
 
     def config(self) -> dict: ...
 
@@ -180,8 +185,31 @@ class ADC(StrategyOptions):
         low=1,
     )
 
-    # The opacity of the initial Gaussians (3DGS), unless --init-opacity says otherwise.
-    initial_opacity: ClassVar[float] = 0.1
+    # The training options a run leaves at none: the CDC-GS code's (3DGS's, with the opacity
+    # learning rate of the current INRIA code and CDC-GS's geometric-mean initial scales).
+    training_defaults: ClassVar[dict] = {
+        "init_opacity": 0.1,
+        "scale_rule": "cdc",
+        "init_scale": 1.0,
+        "opacity_lr": 0.025,
+    }
+
+    def __post_init__(self):
+        super().__post_init__()
+        target, cap = self.target_gaussians, self.max_gaussians
+        if target is not None and cap is not None and target > cap:
+            raise OptionError(
+                f"--target-gaussians {self.target_gaussians} is above --max-gaussians {self.max_gaussians}"
+            )
+
+    def check(self, total_steps: int) -> None:
+        last = self.last_densification()
+        if self.target_gaussians is not None and (last is None or last > total_steps):
+            where = "no iteration densifies" if last is None else f"the last densification step, {last}, is after"
+            raise OptionError(
+                f"--target-gaussians needs a densification step to land on, but {where} the run's "
+                f"{total_steps} iterations (see --densify-until, --iters)"
+            )
 
     @property
     def complexity_maps_method(self) -> str | None:
@@ -351,18 +379,21 @@ class ADC(StrategyOptions):
         return {**log, "gaussians": model.num}
 
     def land_on_target(self, ctx: StepContext, score: torch.Tensor) -> dict:
-        """Make the count exactly ``target_gaussians``: clone the Gaussians of highest ``score`` [N]
-        (the mean gradient; negative for those grown or born this step, which are not cloned again),
-        or remove the least opaque."""
+        """Make the count exactly ``target_gaussians``: clone (3DGS's clone) the Gaussians of
+        highest ``score`` [N] (the mean gradient; -1 for those grown or born this step, so they
+        come last), or remove the least opaque. Cloning at most doubles the count: a target
+        further away is logged as ``target_short``."""
         model, target = ctx.model, self.target_gaussians
         if model.num < target:
             top = torch.argsort(score, descending=True, stable=True)[: target - model.num]
             mask = torch.zeros(model.num, dtype=torch.bool, device=model.device)
             mask[top] = True
             count = int(mask.sum())
-            # Clones of clones would be needed past twice the count; then the count stays short.
             ops.clone(model, optimizer=ctx.optimizer, mask=mask)
-            return {"target_cloned": count}
+            log = {"target_cloned": count}
+            if model.num < target:
+                log["target_short"] = target - model.num
+            return log
         if model.num > target:
             order = torch.argsort(model.opacities().detach(), stable=True)[: model.num - target]
             mask = torch.zeros(model.num, dtype=torch.bool, device=model.device)

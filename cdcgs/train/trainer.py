@@ -19,7 +19,7 @@ from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
 from ..render import prepare_camera, rasterize
 from . import outputs
-from .config import TrainConfig, background_color, config_to_dict
+from .config import TrainConfig, background_color, config_to_dict, resolve_defaults
 from .evaluate import evaluate, lpips_metric
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
@@ -150,6 +150,9 @@ class Trainer:
         # Each training view's camera, checked and built once (the render would redo it every step).
         self.cameras = [prepare_camera(v.viewmat, v.K, v.width, v.height) for v in self.scene.train]
         self.strategy = make_strategy(config.strategy, self.strategy_options)
+        self.strategy.check(config.iters)
+        # The options left at none take the strategy's values; config.json records them.
+        self.config = config = resolve_defaults(config, self.strategy)
         # Every random draw of the run comes from these two (torch generators are bound to a
         # device): the device one for strategies, splits and backgrounds, the CPU one for the
         # order of the views.
@@ -162,8 +165,9 @@ class Trainer:
                 self.scene.points,
                 self.scene.colors,
                 max_sh_degree=config.sh_degree,
-                init_opacity=self.init_opacity,
+                init_opacity=config.init_opacity,
                 scale_rule=config.scale_rule,
+                scale_factor=config.init_scale,
                 device=self.device,
             )
             self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent)
@@ -192,16 +196,11 @@ class Trainer:
         self.background = torch.tensor(fixed or (0.0, 0.0, 0.0), device=self.device)
         self.lpips = lpips_metric(self.device)
         config_json = {
-            "train": {**config_to_dict(config), "init_opacity": self.init_opacity},
+            "train": config_to_dict(config),
             "strategy": self.strategy.config(),
             "scene": self._scene_summary(),
         }
         outputs.write_json(os.path.join(self.out, outputs.CONFIG), config_json)
-
-    @property
-    def init_opacity(self) -> float:
-        """The initial Gaussians' opacity: ``--init-opacity``, else the strategy's."""
-        return self.config.init_opacity if self.config.init_opacity is not None else self.strategy.initial_opacity
 
     def _scene_summary(self) -> dict:
         s = self.scene
