@@ -470,6 +470,111 @@ def correlation_table(histories: dict) -> str:
     return "\n".join(lines)
 
 
+def _add_process_parser(sub):
+    from .process.pipeline import CAMERA_MODELS, MAPPERS, MATCHERS, ProcessOptions
+
+    d = ProcessOptions()
+    p = sub.add_parser(
+        "process",
+        help="photos or a video to a scene for train: structure from motion with pycolmap",
+        description="Run structure from motion (pycolmap: SIFT, matching, mapping, undistortion) on a folder of "
+        "photos or a video and write a COLMAP scene that cdcgs train --data reads, with images_2/4/8 and "
+        "process.json (docs/process.md).",
+    )
+    p.add_argument("input", help="a folder of images, or a video file")
+    p.add_argument("--out", required=True, metavar="DIR", help="the scene folder to write")
+    p.add_argument("--frames", type=int, default=d.frames, help=f"frames kept from a video (default: {d.frames})")
+    p.add_argument(
+        "--matcher",
+        choices=MATCHERS,
+        default=d.matcher,
+        help="auto: sequential for a video, exhaustive for photos up to --exhaustive-limit, spatial for more "
+        "with GPS in their EXIF (default: auto)",
+    )
+    p.add_argument("--vocab-tree", metavar="FILE", default=None, help="COLMAP vocabulary tree, for --matcher vocabtree")
+    p.add_argument(
+        "--exhaustive-limit",
+        type=int,
+        default=d.exhaustive_limit,
+        help=f"auto matches photo sets up to this size exhaustively (default: {d.exhaustive_limit})",
+    )
+    p.add_argument(
+        "--overlap",
+        type=int,
+        default=d.overlap,
+        help=f"sequential matching pairs each frame with the next this many (default: {d.overlap})",
+    )
+    p.add_argument(
+        "--camera-model",
+        choices=CAMERA_MODELS,
+        default=d.camera_model,
+        help=f"camera model (default: {d.camera_model})",
+    )
+    p.add_argument("--per-image-camera", action="store_true", help="one camera per image (default: one shared camera)")
+    p.add_argument("--mapper", choices=MAPPERS, default=d.mapper, help=f"mapper (default: {d.mapper})")
+    p.add_argument(
+        "--max-image-size",
+        type=int,
+        default=d.max_image_size,
+        help=f"SIFT reads images at most this large (default: {d.max_image_size})",
+    )
+    p.add_argument(
+        "--max-features", type=int, default=d.max_features, help=f"SIFT features per image (default: {d.max_features})"
+    )
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default=d.device,
+        help="features and matching on the GPU where pycolmap has CUDA (default: auto)",
+    )
+    p.add_argument(
+        "--min-registered",
+        type=float,
+        default=d.min_registered,
+        help=f"fail when a smaller share of the images registers (default: {d.min_registered})",
+    )
+    p.add_argument("--seed", type=int, default=d.seed, help=f"pycolmap's random seed (default: {d.seed})")
+    p.add_argument("--overwrite", action="store_true", help="replace what an earlier process wrote into --out")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    p.set_defaults(func=cmd_process)
+
+
+def cmd_process(args) -> int:
+    from .process import ProcessOptions, process
+
+    options = ProcessOptions(
+        frames=args.frames,
+        matcher=args.matcher,
+        vocab_tree=args.vocab_tree,
+        exhaustive_limit=args.exhaustive_limit,
+        overlap=args.overlap,
+        camera_model=args.camera_model,
+        per_image_camera=args.per_image_camera,
+        mapper=args.mapper,
+        max_image_size=args.max_image_size,
+        max_features=args.max_features,
+        device=args.device,
+        min_registered=args.min_registered,
+        seed=args.seed,
+        overwrite=args.overwrite,
+        progress=args.progress,
+    )
+    summary = process(args.input, args.out, options)
+    seconds = ", ".join(f"{stage} {t:.1f} s" for stage, t in summary["seconds"].items())
+    print(
+        f"registered {summary['registered']} of {summary['images']} images, {summary['points']} points, "
+        f"mean reprojection error {summary['mean_reprojection_error']:.2f} px ({summary['matcher']} matching, "
+        f"{summary['mapper']} mapping, on {summary['device']})"
+    )
+    print(f"time: {seconds}")
+    for entry in summary["unregistered"]:
+        print(f"  not registered: {entry['name']}: {entry['reason']}")
+    for other in summary["other_models"]:
+        print(f"  another model of {other['images']} images and {other['points']} points was left out")
+    print(f"scene in {os.path.abspath(args.out)} (cdcgs train --data {args.out})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cdcgs", description="3D Gaussian Splatting with CDC-GS densification on Warp kernels."
@@ -477,6 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     parser.commands = sub.choices  # name -> the command's parser, for option_reference
     _add_train_parser(sub)
+    _add_process_parser(sub)
     p = sub.add_parser(
         "eval",
         help="evaluate a trained run (or a PLY with its scene) on the test views: PSNR, SSIM, LPIPS-VGG, LPIPS-Alex",

@@ -156,3 +156,78 @@ def line_residual(mask: np.ndarray) -> float:
     pts = np.stack([xs, ys], 1).astype(np.float64)
     pts -= pts.mean(0)
     return float(np.sqrt(np.linalg.svd(pts, compute_uv=False)[-1] ** 2 / len(pts)))
+
+
+def _value_noise(u: np.ndarray, v: np.ndarray, seed: int) -> np.ndarray:
+    """Smooth pseudo-random texture in [0, 1]: bilinear value noise over four octaves."""
+    total = np.zeros_like(u)
+    for octave, weight in enumerate((0.4, 0.3, 0.2, 0.1)):
+        scale = 6.0 * 2**octave
+        x, y = u * scale, v * scale
+        ix, iy = np.floor(x), np.floor(y)
+        fx, fy = x - ix, y - iy
+        fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+
+        def lattice(a, b, octave=octave):
+            h = a.astype(np.int64) * 374761393 + b.astype(np.int64) * 668265263 + (seed * 31 + octave) * 2654435761
+            h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
+            return (h & 0xFFFF) / 65535.0
+
+        top = lattice(ix, iy) * (1 - fx) + lattice(ix + 1, iy) * fx
+        bottom = lattice(ix, iy + 1) * (1 - fx) + lattice(ix + 1, iy + 1) * fx
+        total += weight * (top * (1 - fy) + bottom * fy)
+    return total
+
+
+def textured_room_views(count: int, width: int, height: int, radius: float = 2.0):
+    """Pictures from inside a box room (half-size 3) whose six faces carry smooth noise textures,
+    from ``count`` cameras on a wavy circle looking at the centre: a scene every view of which
+    SIFT can match. Returns (images [count] of uint8 [H, W, 3], w2c poses [count] 4 x 4,
+    intrinsics (fx, fy, cx, cy)); COLMAP's camera convention (x right, y down, z forward)."""
+    half = 3.0
+    f = 0.8 * width
+    intrinsics = (f, f, width / 2, height / 2)
+    v, u = np.mgrid[0:height, 0:width]
+    cam_dirs = np.stack([(u + 0.5 - width / 2) / f, (v + 0.5 - height / 2) / f, np.ones_like(u, dtype=float)], -1)
+    cam_dirs = cam_dirs.reshape(-1, 3)
+    images, poses = [], []
+    for i in range(count):
+        angle = 2 * np.pi * i / count
+        eye = np.array([radius * np.sin(angle), 0.3 * np.sin(2 * angle), radius * np.cos(angle)])
+        target = np.array([0.0, 0.0, 0.0]) - 0.5 * eye  # look past the centre, tilted a little
+        forward = (target - eye) / np.linalg.norm(target - eye)
+        right = np.cross(forward, [0.0, -1.0, 0.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        R = np.stack([right, down, forward])
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
+        dirs = cam_dirs @ R
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bounds = np.where(dirs > 0, half, -half)
+            t = (bounds - eye) / dirs
+        t = np.where(np.isfinite(t) & (t > 0), t, np.inf)
+        axis = t.argmin(-1)
+        hit = eye + dirs * t.min(-1, keepdims=True)
+        color = np.zeros((len(dirs), 3))
+        for a in range(3):
+            for sign in (-1, 1):
+                mask = (axis == a) & (np.sign(dirs[:, a]) == sign)
+                if not mask.any():
+                    continue
+                p, q = [k for k in range(3) if k != a]
+                face = a * 2 + (sign > 0)
+                uu, vv = hit[mask, p] / (2 * half) + 0.5, hit[mask, q] / (2 * half) + 0.5
+                base = np.array([0.35 + 0.1 * (face % 3), 0.3 + 0.08 * face, 0.55 - 0.07 * face])
+                shade = np.clip((_value_noise(uu, vv, face) - 0.5) * 3.0 + 0.5, 0, 1)[:, None]
+                # Dark and light dots, one per cell of a 24 x 24 grid: blobs at every scale SIFT sees.
+                cu, cv = np.floor(uu * 24), np.floor(vv * 24)
+                jitter = _value_noise(cu * 7.1, cv * 3.3, face + 10)
+                du, dv = uu * 24 - cu - 0.3 - 0.4 * jitter, vv * 24 - cv - 0.7 + 0.4 * jitter
+                dot = (du * du + dv * dv < 0.06)[:, None]
+                ink = (jitter > 0.5)[:, None].astype(float)
+                color[mask] = np.where(dot, ink, np.clip(base * 0.5 + shade * 0.7 - 0.1, 0, 1))
+        images.append((color.reshape(height, width, 3) * 255 + 0.5).astype(np.uint8))
+        poses.append(w2c)
+    return images, poses, intrinsics

@@ -1,0 +1,362 @@
+"""Structure from motion with pycolmap: photos or a video in, a scene for ``cdcgs train`` out.
+
+Stages, each timed and shown with a progress bar:
+
+1. images: photos copied upright (EXIF orientation), or the sharpest frame of each window of a
+   video, into ``SCENE/input``;
+2. features: SIFT (on the GPU where pycolmap was built with CUDA), one shared camera by default
+   (``OPENCV``, as INRIA's convert.py), into ``SCENE/distorted/database.db``;
+3. matching: exhaustive for photo sets up to ``exhaustive_limit``, sequential for video frames,
+   spatial for large sets with GPS in their EXIF, vocabulary tree with a tree file; or as asked;
+4. mapping: incremental (or global) into ``SCENE/distorted/sparse/<k>``; the model with the
+   most registered images is kept, the others are reported;
+5. undistortion to PINHOLE images: ``SCENE/images`` and ``SCENE/sparse/0``;
+6. ``SCENE/images_2``, ``_4``, ``_8``: the undistorted images downscaled.
+
+The summary (images registered of total, points, mean reprojection error, time per stage, and
+why each unregistered image failed) is returned and written to ``SCENE/process.json``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+
+from ..errors import InputError, OptionError
+from .inputs import VIDEO_EXTENSIONS, copy_photos, list_photos, video_frames
+
+__all__ = ["MAPPERS", "MATCHERS", "ProcessOptions", "process"]
+
+MATCHERS = ("auto", "exhaustive", "sequential", "spatial", "vocabtree")
+MAPPERS = ("incremental", "global")
+CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE", "FULL_OPENCV")
+# What process writes into SCENE (and replaces with overwrite).
+OUTPUTS = ("input", "distorted", "images", "images_2", "images_4", "images_8", "sparse", "stereo", "process.json")
+MIN_FEATURES = 100  # an image with fewer SIFT features is reported as featureless
+
+
+@dataclass(kw_only=True)
+class ProcessOptions:
+    """How ``cdcgs process`` runs (each field is a flag of the command)."""
+
+    frames: int = 150  # frames kept from a video
+    matcher: str = "auto"
+    vocab_tree: str | None = None  # a COLMAP vocabulary tree file, for matcher vocabtree
+    exhaustive_limit: int = 300  # auto: exhaustive matching up to this many photos
+    overlap: int = 20  # sequential matching: each frame against the next this many (and quadratic steps)
+    camera_model: str = "OPENCV"
+    per_image_camera: bool = False  # one camera per image instead of one shared camera
+    mapper: str = "incremental"
+    max_image_size: int = 3200  # SIFT works on images at most this large (longer side)
+    max_features: int = 8192
+    device: str = "auto"  # auto, cpu, cuda (features and matching)
+    min_registered: float = 0.5  # fail when a smaller share of the images registers
+    downscales: tuple = field(default=(2, 4, 8))
+    seed: int = 0  # the mappers' random seed (their threads still vary the result slightly)
+    overwrite: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        checks = (
+            (self.matcher in MATCHERS, f"--matcher must be one of {', '.join(MATCHERS)}, got {self.matcher!r}"),
+            (self.mapper in MAPPERS, f"--mapper must be one of {', '.join(MAPPERS)}, got {self.mapper!r}"),
+            (
+                self.camera_model in CAMERA_MODELS,
+                f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {self.camera_model!r}",
+            ),
+            (self.device in ("auto", "cpu", "cuda"), f"--device must be auto, cpu or cuda, got {self.device!r}"),
+            (self.frames >= 3, f"--frames must be at least 3, got {self.frames}"),
+            (self.overlap >= 1, f"--overlap must be at least 1, got {self.overlap}"),
+            (0.0 <= self.min_registered <= 1.0, f"--min-registered must be in [0, 1], got {self.min_registered}"),
+            (self.max_image_size >= 100, f"--max-image-size must be at least 100, got {self.max_image_size}"),
+            (self.max_features >= 100, f"--max-features must be at least 100, got {self.max_features}"),
+            (all(f >= 2 for f in self.downscales), f"--downscales must be factors >= 2, got {self.downscales}"),
+        )
+        for ok, message in checks:
+            if not ok:
+                raise OptionError(message)
+        if self.matcher == "vocabtree" and not (self.vocab_tree and os.path.isfile(self.vocab_tree)):
+            raise OptionError("--matcher vocabtree needs --vocab-tree FILE (a COLMAP vocabulary tree)")
+
+
+class _Stages:
+    """Times the stages and shows one bar over them."""
+
+    def __init__(self, names: list[str], progress: bool):
+        from tqdm import tqdm
+
+        self.seconds: dict[str, float] = {}
+        self.bar = tqdm(total=len(names), desc="process", unit="stage", disable=not progress)
+
+    @contextmanager
+    def stage(self, name: str):
+        self.bar.set_description(name)
+        start = time.perf_counter()
+        yield
+        self.seconds[name] = round(time.perf_counter() - start, 3)
+        self.bar.update(1)
+
+    def close(self):
+        self.bar.close()
+
+
+def _check_paths(input_path: str, out: str, overwrite: bool) -> str:
+    """'video' or 'photos'; refuses a missing input, and an output that would lose anything."""
+    if not os.path.exists(input_path):
+        raise InputError(input_path, "does not exist")
+    if os.path.isdir(input_path):
+        kind = "photos"
+    elif input_path.lower().endswith(VIDEO_EXTENSIONS):
+        kind = "video"
+    else:
+        raise InputError(input_path, f"is neither a folder of images nor a video ({', '.join(VIDEO_EXTENSIONS)})")
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(out, "--out names a file, not a folder")
+    real_input = os.path.realpath(input_path)
+    for name in OUTPUTS:
+        target = os.path.realpath(os.path.join(out, name))
+        if real_input == target or real_input.startswith(target + os.sep):
+            raise InputError(
+                input_path, f"lies inside {os.path.join(out, name)}, which cdcgs process writes: choose another --out"
+            )
+    existing = [name for name in OUTPUTS if os.path.exists(os.path.join(out, name))]
+    if existing and not overwrite:
+        raise InputError(
+            out, f"already holds {', '.join(existing)}; pass --overwrite to replace them, or another --out"
+        )
+    return kind
+
+
+def _device(pycolmap, name: str):
+    if name == "cuda" and not pycolmap.has_cuda:
+        raise OptionError("--device cuda: this pycolmap was built without CUDA (use auto or cpu)")
+    if name == "cpu" or not pycolmap.has_cuda:
+        return pycolmap.Device.cpu, "cpu"
+    return pycolmap.Device.cuda, "cuda"
+
+
+def _has_gps(pycolmap, database: str) -> bool:
+    db = pycolmap.Database.open(database)
+    try:
+        return db.num_pose_priors() > 0
+    finally:
+        db.close()
+
+
+def _failure_reasons(pycolmap, database: str, registered: set[str], min_matches: int) -> dict[str, str]:
+    """Why each image outside ``registered`` did not register, read from the database."""
+    db = pycolmap.Database.open(database)
+    try:
+        images = {image.image_id: image.name for image in db.read_all_images()}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+        best = dict.fromkeys(images, 0)
+        partners = dict.fromkeys(images, 0)
+        for pair_id, count in zip(pair_ids, inliers):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            for image_id in (a, b):
+                best[image_id] = max(best[image_id], count)
+                partners[image_id] += count >= min_matches
+        reasons = {}
+        for image_id, name in images.items():
+            if name in registered:
+                continue
+            features = db.num_keypoints_for_image(image_id)
+            if features < MIN_FEATURES:
+                reasons[name] = f"too few features ({features} SIFT keypoints)"
+            elif partners[image_id] == 0:
+                reasons[name] = f"no matches with another image (at most {best[image_id]} verified inliers)"
+            else:
+                reasons[name] = (
+                    f"matched to {partners[image_id]} image(s) but not registered (too few 2D-3D correspondences, "
+                    "or it belongs to a separate model)"
+                )
+        return reasons
+    finally:
+        db.close()
+
+
+def _downscale(images_dir: str, out: str, factors, progress: bool) -> None:
+    from PIL import Image
+    from tqdm import tqdm
+
+    names = sorted(os.listdir(images_dir))
+    for factor in factors:
+        target = os.path.join(out, f"images_{factor}")
+        os.makedirs(target, exist_ok=True)
+        for name in tqdm(names, desc=f"images_{factor}", unit="img", disable=not progress, leave=False):
+            with Image.open(os.path.join(images_dir, name)) as image:
+                size = (max(1, round(image.width / factor)), max(1, round(image.height / factor)))
+                image.resize(size, Image.Resampling.LANCZOS).save(os.path.join(target, name), quality=95)
+
+
+def process(input_path: str, out: str, options: ProcessOptions | None = None) -> dict:
+    """Run structure from motion on ``input_path`` (a folder of images or a video) and write a
+    COLMAP scene that ``cdcgs train --data out`` reads; returns the summary (also out/process.json).
+
+    Raises:
+        InputError: a missing, unreadable or undecodable input, too few images, an output that
+            already holds a scene (without ``overwrite``), or too few images registered (naming
+            them and why).
+        OptionError: a refused option.
+    """
+    from ..io._pycolmap import import_pycolmap
+
+    options = options or ProcessOptions()
+    input_path, out = os.fspath(input_path), os.fspath(out)
+    kind = _check_paths(input_path, out, options.overwrite)
+    pycolmap = import_pycolmap()
+    device, device_name = _device(pycolmap, options.device)
+    quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 2  # COLMAP's log: errors only
+    try:
+        return _process(pycolmap, input_path, out, kind, device, device_name, options)
+    finally:
+        pycolmap.logging.minloglevel = quiet
+
+
+def _process(pycolmap, input_path, out, kind, device, device_name, options) -> dict:
+    from ..train.outputs import write_json
+
+    if options.overwrite:
+        for name in OUTPUTS:
+            path = os.path.join(out, name)
+            if os.path.isdir(path):
+                shutil.rmtree(path)
+            elif os.path.exists(path):
+                os.remove(path)
+    os.makedirs(out, exist_ok=True)
+    input_dir = os.path.join(out, "input")
+    distorted = os.path.join(out, "distorted")
+    database = os.path.join(distorted, "database.db")
+    stages = _Stages(["images", "features", "matching", "mapping", "undistortion", "downscaling"], options.progress)
+    try:
+        with stages.stage("images"):
+            if kind == "video":
+                names = video_frames(input_path, input_dir, options.frames, options.progress)
+            else:
+                names = copy_photos(list_photos(input_path), input_dir, options.progress)
+        if len(names) < 3:
+            raise InputError(input_path, f"structure from motion needs at least 3 images, got {len(names)}")
+        os.makedirs(distorted, exist_ok=True)
+        with stages.stage("features"):
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = options.camera_model
+            extraction = pycolmap.FeatureExtractionOptions()
+            extraction.max_image_size = options.max_image_size
+            extraction.sift.max_num_features = options.max_features
+            extraction.use_gpu = device_name == "cuda"
+            mode = pycolmap.CameraMode.PER_IMAGE if options.per_image_camera else pycolmap.CameraMode.SINGLE
+            pycolmap.extract_features(
+                database,
+                input_dir,
+                camera_mode=mode,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=device,
+            )
+        matcher = options.matcher
+        if matcher == "auto":
+            if kind == "video":
+                matcher = "sequential"
+            elif len(names) <= options.exhaustive_limit:
+                matcher = "exhaustive"
+            elif _has_gps(pycolmap, database):
+                matcher = "spatial"
+            else:
+                matcher = "exhaustive"  # no offline alternative without GPS or a vocabulary tree
+        with stages.stage("matching"):
+            matching = pycolmap.FeatureMatchingOptions()
+            matching.use_gpu = device_name == "cuda"
+            if matcher == "exhaustive":
+                pycolmap.match_exhaustive(database, matching_options=matching, device=device)
+            elif matcher == "sequential":
+                pairing = pycolmap.SequentialPairingOptions()
+                pairing.overlap = options.overlap
+                pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+            elif matcher == "spatial":
+                pycolmap.match_spatial(database, matching_options=matching, device=device)
+            else:
+                pairing = pycolmap.VocabTreePairingOptions()
+                pairing.vocab_tree_path = options.vocab_tree
+                pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=pairing, device=device)
+        sparse_all = os.path.join(distorted, "sparse")
+        os.makedirs(sparse_all, exist_ok=True)
+        with stages.stage("mapping"):
+            models = _map(pycolmap, database, input_dir, sparse_all, options, len(names))
+        registered_by_model = sorted(
+            ((rec.num_reg_images(), index) for index, rec in models.items()), key=lambda x: (-x[0], x[1])
+        )
+        best = models[registered_by_model[0][1]] if models else None
+        registered = {image.name for image in best.images.values() if image.has_pose} if best else set()
+        reasons = _failure_reasons(pycolmap, database, registered, 15)
+        needed = max(3, math.ceil(options.min_registered * len(names)))
+        if len(registered) < needed:
+            listed = "; ".join(f"{name}: {why}" for name, why in sorted(reasons.items())[:20])
+            more = f" (and {len(reasons) - 20} more)" if len(reasons) > 20 else ""
+            raise InputError(
+                input_path,
+                f"only {len(registered)} of {len(names)} images registered (at least {needed} needed, "
+                f"--min-registered {options.min_registered}): {listed}{more}",
+            )
+        best_index = registered_by_model[0][1]
+        with stages.stage("undistortion"):
+            pycolmap.undistort_images(out, os.path.join(sparse_all, str(best_index)), input_dir)
+            model_dir = os.path.join(out, "sparse", "0")
+            os.makedirs(model_dir, exist_ok=True)
+            for name in os.listdir(os.path.join(out, "sparse")):
+                path = os.path.join(out, "sparse", name)
+                if os.path.isfile(path):
+                    shutil.move(path, os.path.join(model_dir, name))
+            shutil.rmtree(os.path.join(out, "stereo"), ignore_errors=True)
+            for name in os.listdir(out):
+                if name.startswith("run-colmap-"):
+                    os.remove(os.path.join(out, name))
+        with stages.stage("downscaling"):
+            _downscale(os.path.join(out, "images"), out, options.downscales, options.progress)
+    finally:
+        stages.close()
+    others = [
+        {"model": index, "images": count, "points": models[index].num_points3D()}
+        for count, index in registered_by_model[1:]
+    ]
+    summary = {
+        "input": os.path.abspath(input_path),
+        "kind": kind,
+        "images": len(names),
+        "registered": len(registered),
+        "unregistered": [{"name": name, "reason": why} for name, why in sorted(reasons.items())],
+        "points": best.num_points3D(),
+        "mean_reprojection_error": best.compute_mean_reprojection_error(),
+        "cameras": best.num_cameras(),
+        "other_models": others,
+        "matcher": matcher,
+        "mapper": options.mapper,
+        "device": device_name,
+        "seconds": stages.seconds,
+        "pycolmap": pycolmap.__version__,
+        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()},
+    }
+    write_json(os.path.join(out, "process.json"), summary)
+    return summary
+
+
+def _map(pycolmap, database: str, image_dir: str, sparse_all: str, options: ProcessOptions, count: int) -> dict:
+    """The models pycolmap's mapper builds (index -> Reconstruction), written under ``sparse_all``."""
+    from tqdm import tqdm
+
+    if options.mapper == "global":
+        pipeline = pycolmap.GlobalPipelineOptions()
+        pipeline.random_seed = options.seed
+        return pycolmap.global_mapping(database, image_dir, sparse_all, pipeline)
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    pipeline.random_seed = options.seed
+    bar = tqdm(total=count, desc="registered", unit="img", disable=not options.progress, leave=False)
+    try:
+        return pycolmap.incremental_mapping(
+            database, image_dir, sparse_all, pipeline, next_image_callback=lambda: bar.update(1)
+        )
+    finally:
+        bar.close()

@@ -1,0 +1,181 @@
+"""cdcgs process: structure from motion on rendered views with known poses (photos and a video),
+checked against the truth after a similarity alignment, and every kind of bad input."""
+
+import json
+import os
+import re
+
+import numpy as np
+import pytest
+from PIL import Image
+from scenes import textured_room_views
+
+from cdcgs.cli import main as cli_main
+from cdcgs.errors import InputError
+from cdcgs.io import load_scene
+from cdcgs.process import ProcessOptions, process
+
+VIEWS, WIDTH, HEIGHT = 24, 320, 240
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """24 photos of the textured room with their true world-to-camera poses."""
+    images, poses, _ = textured_room_views(VIEWS, WIDTH, HEIGHT)
+    folder = tmp_path_factory.mktemp("photos")
+    for i, image in enumerate(images):
+        Image.fromarray(image).save(folder / f"view_{i:02d}.png")
+    return folder, images, poses
+
+
+def similarity_align(source: np.ndarray, target: np.ndarray):
+    """(s, R, t) minimising |s R source + t - target| (Umeyama 1991), points as rows."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    a, b = source - mu_s, target - mu_t
+    u, d, vt = np.linalg.svd(b.T @ a / len(a))
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[-1] = -1
+    rotation = u @ np.diag(sign) @ vt
+    scale = (d * sign).sum() / a.var(0).sum()
+    return scale, rotation, mu_t - scale * rotation @ mu_s
+
+
+def pose_errors(scene_dir, names_to_truth: dict):
+    """(max rotation error in degrees, RMS centre error / camera spread) of the processed model
+    against the true poses, after the best similarity between the two sets of centres."""
+    scene = load_scene(str(scene_dir), test_every=0)
+    estimated, truth, rotations = [], [], []
+    for view in scene.train:
+        w2c_true = names_to_truth[view.name]
+        w2c = view.viewmat.double().numpy()
+        estimated.append(-w2c[:3, :3].T @ w2c[:3, 3])
+        truth.append(-w2c_true[:3, :3].T @ w2c_true[:3, 3])
+        rotations.append((w2c[:3, :3], w2c_true[:3, :3]))
+    estimated, truth = np.array(estimated), np.array(truth)
+    scale, align, shift = similarity_align(estimated, truth)
+    spread = np.linalg.norm(truth - truth.mean(0), axis=1).max()
+    offsets = np.linalg.norm(scale * estimated @ align.T + shift - truth, axis=1)
+    centre_error = np.sqrt((offsets**2).mean()) / spread  # root mean square over the cameras
+    angles = []
+    for r_est, r_true in rotations:
+        # World rotations: camera-to-world of the estimate, carried into the true frame by `align`.
+        relative = (align @ r_est.T).T @ r_true.T
+        angles.append(np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1))))
+    return max(angles), centre_error, len(scene.train)
+
+
+def test_photos_give_the_true_poses(room, tmp_path):
+    folder, _, poses = room
+    out = tmp_path / "scene"
+    summary = process(folder, out, ProcessOptions(progress=False))
+    assert summary["registered"] >= 0.95 * VIEWS and summary["matcher"] == "exhaustive"
+    assert summary["mean_reprojection_error"] < 1.0 and summary["points"] > 500
+    rotation_error, centre_error, registered = pose_errors(out, {f"view_{i:02d}.png": p for i, p in enumerate(poses)})
+    assert registered == summary["registered"]
+    assert rotation_error < 0.5 and centre_error < 0.01, (rotation_error, centre_error)
+    assert json.load(open(out / "process.json"))["registered"] == summary["registered"]
+    assert set(summary["seconds"]) == {"images", "features", "matching", "mapping", "undistortion", "downscaling"}
+    for factor in (2, 4, 8):
+        with (
+            Image.open(out / f"images_{factor}" / "view_00.png") as small,
+            Image.open(out / "images" / "view_00.png") as big,
+        ):
+            assert abs(small.width - big.width / factor) <= 1
+    full = load_scene(str(out), test_every=0).train[0].width  # undistortion may crop a few pixels
+    assert abs(load_scene(str(out), images="images_4", test_every=0).train[0].width - full / 4) <= 1
+    # What an earlier run wrote is not replaced without --overwrite, and is not touched.
+    before = (out / "process.json").read_bytes()
+    with pytest.raises(InputError, match=r"already holds.*--overwrite"):
+        process(folder, out, ProcessOptions(progress=False))
+    assert (out / "process.json").read_bytes() == before
+
+
+def test_a_video_gives_the_true_poses_from_its_sharpest_frames(room, tmp_path):
+    import imageio_ffmpeg
+    from scipy.ndimage import gaussian_filter
+
+    _, images, poses = room
+    video = tmp_path / "orbit.mp4"
+    writer = imageio_ffmpeg.write_frames(
+        str(video), (WIDTH, HEIGHT), fps=10, codec="libx264", output_params=["-crf", "10"], macro_block_size=16
+    )
+    writer.send(None)
+    for image in images:  # each view twice: sharp, then blurred (the same pose)
+        writer.send(np.ascontiguousarray(image))
+        writer.send(np.ascontiguousarray(gaussian_filter(image, sigma=(2.5, 2.5, 0))).astype(np.uint8))
+    writer.close()
+    out = tmp_path / "scene"
+    # The frames are pinhole renders: with OPENCV's four free distortion terms the focal length of
+    # a sequentially matched orbit settles at 247 or 260 px (truth 256) from run to run, with PINHOLE at 256.1.
+    summary = process(video, out, ProcessOptions(frames=VIEWS, camera_model="PINHOLE", progress=False))
+    assert summary["kind"] == "video" and summary["matcher"] == "sequential" and summary["images"] == VIEWS
+    assert summary["registered"] >= 0.95 * VIEWS
+    for i in (0, 7, 15):  # the sharp frame of each window was kept
+        kept = np.asarray(Image.open(out / "input" / f"frame_{i:05d}.png")).astype(float)
+        assert np.abs(kept - images[i]).mean() < np.abs(kept - gaussian_filter(images[i], (2.5, 2.5, 0))).mean()
+    rotation_error, centre_error, _ = pose_errors(out, {f"frame_{i:05d}.png": p for i, p in enumerate(poses)})
+    assert rotation_error < 0.5 and centre_error < 0.01, (rotation_error, centre_error)
+
+
+def test_bad_inputs_get_clear_errors(room, tmp_path):
+    _, images, _ = room
+    options = ProcessOptions(progress=False)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="holds no images"):
+        process(empty, tmp_path / "a", options)
+    one = tmp_path / "one"
+    one.mkdir()
+    Image.fromarray(images[0]).save(one / "only.png")
+    with pytest.raises(InputError, match="at least 3 images, got 1"):
+        process(one, tmp_path / "b", options)
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for i in range(3):
+        Image.fromarray(images[i]).save(broken / f"v{i}.png")
+    (broken / "v3.jpg").write_bytes(b"not a JPEG at all")
+    with pytest.raises(InputError, match=r"v3\.jpg: cannot be read as an image"):
+        process(broken, tmp_path / "c", options)
+    video = tmp_path / "broken.mp4"
+    video.write_bytes(b"\x00" * 1000)
+    with pytest.raises(InputError, match=r"broken\.mp4: cannot be decoded as a video"):
+        process(video, tmp_path / "d", options)
+    with pytest.raises(InputError, match="does not exist"):
+        process(tmp_path / "nowhere", tmp_path / "e", options)
+    inside = tmp_path / "f" / "images"  # the photos where the undistorted images would go
+    inside.mkdir(parents=True)
+    for i in range(3):
+        Image.fromarray(images[i]).save(inside / f"v{i}.png")
+    with pytest.raises(InputError, match="lies inside"):
+        process(inside, tmp_path / "f", options)
+    assert len(os.listdir(inside)) == 3
+
+
+def test_unrelated_images_name_every_image_and_why(tmp_path):
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    for i in range(5):  # independent noise: features everywhere, nothing in common
+        Image.fromarray(rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)).save(folder / f"noise_{i}.png")
+    Image.fromarray(np.full((HEIGHT, WIDTH, 3), 128, np.uint8)).save(folder / "flat.png")
+    with pytest.raises(InputError) as caught:
+        process(folder, tmp_path / "scene", ProcessOptions(progress=False))
+    message = str(caught.value)
+    assert "only 0 of 6 images registered" in message
+    assert "flat.png: too few features (0 SIFT keypoints)" in message
+    assert all(f"noise_{i}.png: no matches with another image" in message for i in range(5))
+
+
+def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsys):
+    folder, _, _ = room
+    assert cli_main(["train", "--data", str(folder), "--out", str(tmp_path / "run")]) == 2
+    assert f"cdcgs process {folder} --out SCENE" in capsys.readouterr().err
+    out = tmp_path / "scene"
+    assert cli_main(["process", str(folder), "--out", str(out), "--mapper", "global", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert re.search(rf"registered (2[34]) of {VIEWS} images, \d+ points", printed), printed
+    assert "global mapping" in printed and json.load(open(out / "process.json"))["mapper"] == "global"
+    assert len(load_scene(str(out), test_every=0).train) >= 23
+    assert cli_main(["process", str(folder), "--out", str(tmp_path / "scene"), "--matcher", "vocabtree"]) == 2
+    assert "--vocab-tree FILE" in capsys.readouterr().err
