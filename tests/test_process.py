@@ -11,7 +11,7 @@ from PIL import Image
 from scenes import textured_room_views
 
 from cdcgs.cli import main as cli_main
-from cdcgs.errors import InputError
+from cdcgs.errors import InputError, OptionError
 from cdcgs.io import load_scene
 from cdcgs.process import ProcessOptions, process
 
@@ -148,8 +148,49 @@ def test_bad_inputs_get_clear_errors(room, tmp_path):
     for i in range(3):
         Image.fromarray(images[i]).save(inside / f"v{i}.png")
     with pytest.raises(InputError, match="lies inside"):
-        process(inside, tmp_path / "f", options)
+        process(inside, tmp_path / "f", ProcessOptions(progress=False, overwrite=True))
     assert len(os.listdir(inside)) == 3
+    with pytest.raises(OptionError, match="--vocab-tree is read by --matcher vocabtree only"):
+        ProcessOptions(vocab_tree=str(inside / "v0.png"))
+    gpsless = tmp_path / "gpsless"
+    gpsless.mkdir()
+    for i in range(3):
+        Image.fromarray(images[i]).save(gpsless / f"v{i}.png")
+    with pytest.raises(OptionError, match="needs GPS positions"):
+        process(gpsless, tmp_path / "g", ProcessOptions(matcher="spatial", progress=False))
+    assert not (tmp_path / "g" / "input").exists(), "a failed run leaves nothing of its own behind"
+
+
+def test_overwrite_keeps_the_earlier_scene_when_the_new_run_fails(tmp_path):
+    scene = tmp_path / "scene"
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "sparse" / "0" / "cameras.bin").write_bytes(b"earlier model")
+    (scene / "process.json").write_text("{}")
+    (scene / "notes.txt").write_text("mine")  # not something process writes: never touched
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="holds no images"):
+        process(empty, scene, ProcessOptions(progress=False, overwrite=True))
+    assert (scene / "sparse" / "0" / "cameras.bin").read_bytes() == b"earlier model"
+    assert sorted(os.listdir(scene)) == ["notes.txt", "process.json", "sparse"]
+
+
+def test_photos_are_turned_upright_by_their_exif_orientation(tmp_path):
+    from cdcgs.process.inputs import EXIF_ORIENTATION, copy_photos
+
+    pixels = np.zeros((20, 40, 3), np.uint8)
+    pixels[:, :10] = 255  # a white band on the left
+    exif = Image.Exif()
+    exif[EXIF_ORIENTATION] = 6  # the camera was turned: view rotated 90 degrees clockwise
+    Image.fromarray(pixels).save(tmp_path / "turned.jpg", exif=exif, quality=95)
+    Image.fromarray(pixels).save(tmp_path / "plain.jpg", quality=95)
+    names = copy_photos([str(tmp_path / "turned.jpg"), str(tmp_path / "plain.jpg")], str(tmp_path / "out"), False)
+    assert names == ["turned.jpg", "plain.jpg"]
+    with Image.open(tmp_path / "out" / "turned.jpg") as upright:
+        assert upright.size == (20, 40) and upright.getexif().get(EXIF_ORIENTATION, 1) == 1
+        top = np.asarray(upright)[:10].mean()  # the white band is now at the top
+        assert top > 200 and np.asarray(upright)[20:].mean() < 30
+    assert (tmp_path / "out" / "plain.jpg").read_bytes() == (tmp_path / "plain.jpg").read_bytes()
 
 
 def test_unrelated_images_name_every_image_and_why(tmp_path):

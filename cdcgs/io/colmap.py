@@ -39,16 +39,15 @@ def find_model_dir(root: str) -> str:
     for candidate in (os.path.join(root, "sparse", "0"), os.path.join(root, "sparse")):
         if any(os.path.isfile(os.path.join(candidate, f"cameras.{ext}")) for ext in ("bin", "txt")):
             return candidate
-    photos = [n for n in os.listdir(root) if n.lower().endswith((".jpg", ".jpeg", ".png", ".tif", ".tiff"))]
-    images = os.path.join(root, "images")
-    if not photos and os.path.isdir(images):
-        photos = os.listdir(images)
-    if photos:
-        raise InputError(
-            root,
-            f"holds {len(photos)} photos but no camera poses (no COLMAP model in sparse/0/): "
-            f"make a scene with `cdcgs process {root} --out SCENE` and train on SCENE",
-        )
+    suffixes = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+    for folder in (root, os.path.join(root, "images")):
+        photos = [n for n in os.listdir(folder) if n.lower().endswith(suffixes)] if os.path.isdir(folder) else []
+        if photos:
+            raise InputError(
+                root,
+                f"holds {len(photos)} photos but no camera poses (no COLMAP model in sparse/0/): "
+                f"make a scene with `cdcgs process {folder} --out SCENE` and train on SCENE",
+            )
     raise InputError(root, "no COLMAP model: expected sparse/0/ or sparse/ holding cameras.bin or cameras.txt")
 
 

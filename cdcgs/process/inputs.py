@@ -44,7 +44,7 @@ def copy_photos(paths: list[str], out_dir: str, progress: bool = True) -> list[s
         try:
             with Image.open(path) as image:
                 image.load()
-                kind = image.format
+                kind = "JPEG" if image.format == "MPO" else image.format  # MPO: phones' multi-picture JPEGs
                 orientation = image.getexif().get(EXIF_ORIENTATION, 1)
                 if kind in ("JPEG", "PNG") and orientation == 1:
                     with open(path, "rb") as src, open(os.path.join(out_dir, name), "wb") as dst:
@@ -94,26 +94,32 @@ def video_frames(path: str, out_dir: str, count: int, progress: bool = True) -> 
     width, height = meta["size"]
     count = min(count, total)
     edges = np.linspace(0, total, count + 1)
-    best: dict[int, tuple[float, np.ndarray]] = {}
     os.makedirs(out_dir, exist_ok=True)
+    names: list[str] = []
+    best: tuple[int, float, np.ndarray] | None = None  # (window, sharpness, frame) of the window being read
+
+    def keep(window: int, frame: np.ndarray) -> None:
+        names.append(f"frame_{window:05d}.png")
+        Image.fromarray(frame).save(os.path.join(out_dir, names[-1]))
+
     index = 0
     try:
         for raw in tqdm(reader, total=total, desc="frames", unit="frame", disable=not progress, leave=False):
             frame = np.frombuffer(raw, dtype=np.uint8).reshape(height, width, 3)
             window = min(int(np.searchsorted(edges, index, side="right")) - 1, count - 1)
+            if best is not None and window != best[0]:
+                keep(best[0], best[2])  # one frame in memory at a time, not one per window
+                best = None
             score = sharpness(frame)
-            if window not in best or score > best[window][0]:
-                best[window] = (score, frame.copy())
+            if best is None or score > best[1]:
+                best = (window, score, frame.copy())
             index += 1
     except (RuntimeError, OSError) as err:
         raise InputError(path, f"decoding stopped at frame {index} ({err})") from None
     finally:
         reader.close()
-    if not best:
+    if best is not None:
+        keep(best[0], best[2])
+    if not names:
         raise InputError(path, "no frame could be decoded")
-    names = []
-    for window in sorted(best):
-        name = f"frame_{window:05d}.png"
-        Image.fromarray(best[window][1]).save(os.path.join(out_dir, name))
-        names.append(name)
     return names

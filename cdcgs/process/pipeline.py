@@ -74,13 +74,15 @@ class ProcessOptions:
             (0.0 <= self.min_registered <= 1.0, f"--min-registered must be in [0, 1], got {self.min_registered}"),
             (self.max_image_size >= 100, f"--max-image-size must be at least 100, got {self.max_image_size}"),
             (self.max_features >= 100, f"--max-features must be at least 100, got {self.max_features}"),
-            (all(f >= 2 for f in self.downscales), f"--downscales must be factors >= 2, got {self.downscales}"),
+            (all(f >= 2 for f in self.downscales), f"downscales must be factors >= 2, got {self.downscales}"),
         )
         for ok, message in checks:
             if not ok:
                 raise OptionError(message)
         if self.matcher == "vocabtree" and not (self.vocab_tree and os.path.isfile(self.vocab_tree)):
             raise OptionError("--matcher vocabtree needs --vocab-tree FILE (a COLMAP vocabulary tree)")
+        if self.vocab_tree and self.matcher != "vocabtree":
+            raise OptionError("--vocab-tree is read by --matcher vocabtree only")
 
 
 class _Stages:
@@ -179,6 +181,16 @@ def _failure_reasons(pycolmap, database: str, registered: set[str], min_matches:
         db.close()
 
 
+def _image_sizes(folder: str, names: list[str]) -> list[tuple[int, int]]:
+    from PIL import Image
+
+    sizes = []
+    for name in names:
+        with Image.open(os.path.join(folder, name)) as image:  # reads the header only
+            sizes.append(image.size)
+    return sizes
+
+
 def _downscale(images_dir: str, out: str, factors, progress: bool) -> None:
     from PIL import Image
     from tqdm import tqdm
@@ -211,22 +223,35 @@ def process(input_path: str, out: str, options: ProcessOptions | None = None) ->
     pycolmap = import_pycolmap()
     device, device_name = _device(pycolmap, options.device)
     quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 2  # COLMAP's log: errors only
+    # With overwrite, the earlier result moves aside and comes back if this run fails.
+    backup = os.path.join(out, f".process-previous-{os.getpid()}")
+    previous = [name for name in OUTPUTS if os.path.lexists(os.path.join(out, name))]
+    if previous:
+        os.makedirs(backup)
+        for name in previous:
+            os.replace(os.path.join(out, name), os.path.join(backup, name))
     try:
-        return _process(pycolmap, input_path, out, kind, device, device_name, options)
+        summary = _process(pycolmap, input_path, out, kind, device, device_name, options)
+    except BaseException:
+        for name in OUTPUTS:
+            path = os.path.join(out, name)
+            if os.path.isdir(path) and not os.path.islink(path):
+                shutil.rmtree(path, ignore_errors=True)
+            elif os.path.lexists(path):
+                os.remove(path)
+        for name in previous:
+            os.replace(os.path.join(backup, name), os.path.join(out, name))
+        raise
     finally:
         pycolmap.logging.minloglevel = quiet
+        if previous and os.path.isdir(backup):
+            shutil.rmtree(backup, ignore_errors=True)
+    return summary
 
 
 def _process(pycolmap, input_path, out, kind, device, device_name, options) -> dict:
     from ..train.outputs import write_json
 
-    if options.overwrite:
-        for name in OUTPUTS:
-            path = os.path.join(out, name)
-            if os.path.isdir(path):
-                shutil.rmtree(path)
-            elif os.path.exists(path):
-                os.remove(path)
     os.makedirs(out, exist_ok=True)
     input_dir = os.path.join(out, "input")
     distorted = os.path.join(out, "distorted")
@@ -247,8 +272,13 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.max_image_size = options.max_image_size
             extraction.sift.max_num_features = options.max_features
-            extraction.use_gpu = device_name == "cuda"
-            mode = pycolmap.CameraMode.PER_IMAGE if options.per_image_camera else pycolmap.CameraMode.SINGLE
+            # One shared camera; photos of several sizes (portrait and landscape) get one per size,
+            # since COLMAP's single-camera mode skips every image of another size than the first.
+            sizes = _image_sizes(input_dir, names)
+            if options.per_image_camera:
+                mode = pycolmap.CameraMode.PER_IMAGE
+            else:
+                mode = pycolmap.CameraMode.SINGLE if len(set(sizes)) == 1 else pycolmap.CameraMode.AUTO
             pycolmap.extract_features(
                 database,
                 input_dir,
@@ -258,6 +288,8 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
                 device=device,
             )
         matcher = options.matcher
+        if matcher == "spatial" and not _has_gps(pycolmap, database):
+            raise OptionError("--matcher spatial needs GPS positions in the images' EXIF, and these have none")
         if matcher == "auto":
             if kind == "video":
                 matcher = "sequential"
@@ -269,7 +301,6 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
                 matcher = "exhaustive"  # no offline alternative without GPS or a vocabulary tree
         with stages.stage("matching"):
             matching = pycolmap.FeatureMatchingOptions()
-            matching.use_gpu = device_name == "cuda"
             if matcher == "exhaustive":
                 pycolmap.match_exhaustive(database, matching_options=matching, device=device)
             elif matcher == "sequential":
@@ -292,6 +323,9 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
         best = models[registered_by_model[0][1]] if models else None
         registered = {image.name for image in best.images.values() if image.has_pose} if best else set()
         reasons = _failure_reasons(pycolmap, database, registered, 15)
+        for name in names:
+            if name not in registered and name not in reasons:
+                reasons[name] = "skipped by COLMAP's image reader (unreadable or of an unexpected size)"
         needed = max(3, math.ceil(options.min_registered * len(names)))
         if len(registered) < needed:
             listed = "; ".join(f"{name}: {why}" for name, why in sorted(reasons.items())[:20])
@@ -301,9 +335,12 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
                 f"only {len(registered)} of {len(names)} images registered (at least {needed} needed, "
                 f"--min-registered {options.min_registered}): {listed}{more}",
             )
-        best_index = registered_by_model[0][1]
         with stages.stage("undistortion"):
-            pycolmap.undistort_images(out, os.path.join(sparse_all, str(best_index)), input_dir)
+            # The mappers' folder numbers need not follow their return order: write the kept one.
+            kept_dir = os.path.join(distorted, "kept")
+            os.makedirs(kept_dir, exist_ok=True)
+            best.write(kept_dir)
+            pycolmap.undistort_images(out, kept_dir, input_dir)
             model_dir = os.path.join(out, "sparse", "0")
             os.makedirs(model_dir, exist_ok=True)
             for name in os.listdir(os.path.join(out, "sparse")):
@@ -348,6 +385,11 @@ def _map(pycolmap, database: str, image_dir: str, sparse_all: str, options: Proc
     from tqdm import tqdm
 
     if options.mapper == "global":
+        # As COLMAP's automatic reconstruction: focal lengths from the view graph first (frames and
+        # renders carry no EXIF focal length).
+        calibration = pycolmap.ViewGraphCalibrationOptions()
+        calibration.random_seed = options.seed
+        pycolmap.calibrate_view_graph(database, calibration)
         pipeline = pycolmap.GlobalPipelineOptions()
         pipeline.random_seed = options.seed
         return pycolmap.global_mapping(database, image_dir, sparse_all, pipeline)
