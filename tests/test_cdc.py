@@ -133,7 +133,7 @@ def test_presets_cover_the_variants_table():
 
 
 def test_the_cdc_presets_default_to_the_authors_settings():
-    from cdcgs.train.config import LearningRates, TrainConfig, resolve_defaults
+    from cdcgs.train.config import LearningRates, TrainConfig, config_to_dict, resolve_defaults
     from cdcgs.train.strategies import make_strategy
 
     cdc, baseline = CDC.from_preset("cdc"), CDC.from_preset("3dgs", {"log_correlation": True})
@@ -166,6 +166,13 @@ def test_the_cdc_presets_default_to_the_authors_settings():
         2.0,
         0.3,
     )
+    # A resumed run keeps what it started with, also after the defaults changed (0.05 and the
+    # arithmetic mean before 099f11f); an explicit option still wins.
+    saved = config_to_dict(TrainConfig(lr=LearningRates(opacity_logits=0.05), scale_rule="3dgs", init_opacity=0.1))
+    config = resolve_defaults(TrainConfig(), CDC.from_preset("cdc"), saved)
+    assert (config.lr.opacity_logits, config.scale_rule) == (0.05, "3dgs")
+    config = resolve_defaults(TrainConfig(lr=LearningRates(opacity_logits=0.02)), CDC.from_preset("cdc"), saved)
+    assert config.lr.opacity_logits == 0.02
     with pytest.raises(ValueError, match="needs --pixel-aggregation max"):
         CDC.from_preset("cdc", {"racy_max": True, "pixel_aggregation": "mean"})
 

@@ -125,6 +125,7 @@ def test_bad_inputs_get_clear_errors(room, tmp_path):
     empty.mkdir()
     with pytest.raises(InputError, match="holds no images"):
         process(empty, tmp_path / "a", options)
+    assert not (tmp_path / "a").exists(), "a failed run leaves no folder it created"
     one = tmp_path / "one"
     one.mkdir()
     Image.fromarray(images[0]).save(one / "only.png")

@@ -224,6 +224,7 @@ def process(input_path: str, out: str, options: ProcessOptions | None = None) ->
     device, device_name = _device(pycolmap, options.device)
     quiet, pycolmap.logging.minloglevel = pycolmap.logging.minloglevel, 2  # COLMAP's log: errors only
     # With overwrite, the earlier result moves aside and comes back if this run fails.
+    created = not os.path.exists(out)
     backup = os.path.join(out, f".process-previous-{os.getpid()}")
     previous = [name for name in OUTPUTS if os.path.lexists(os.path.join(out, name))]
     if previous:
@@ -241,6 +242,10 @@ def process(input_path: str, out: str, options: ProcessOptions | None = None) ->
                 os.remove(path)
         for name in previous:
             os.replace(os.path.join(backup, name), os.path.join(out, name))
+        if previous:
+            os.rmdir(backup)
+        if created and os.path.isdir(out) and not os.listdir(out):
+            os.rmdir(out)  # a failed run leaves no empty folder behind
         raise
     finally:
         pycolmap.logging.minloglevel = quiet

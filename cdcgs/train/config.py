@@ -176,10 +176,19 @@ class TrainConfig:
             raise OptionError("--init-opacity must be in (0, 1), got 1.0")
 
 
-def resolve_defaults(config: TrainConfig, strategy) -> TrainConfig:
+def resolve_defaults(config: TrainConfig, strategy, saved: dict | None = None) -> TrainConfig:
     """``config`` with every option left at none (``init_opacity``, ``scale_rule``, ``init_scale``,
-    ``lr.opacity_logits``) set to ``strategy``'s value (its ``training_defaults`` dict)."""
-    defaults = strategy.training_defaults
+    ``lr.opacity_logits``) set to the value of the run being resumed (``saved``, its
+    :func:`config_to_dict`), else to ``strategy``'s (its ``training_defaults`` dict): a resumed run
+    goes on with what it started with, also when the defaults changed in between."""
+    saved = saved or {}
+    defaults = {
+        "init_opacity": saved.get("init_opacity"),
+        "scale_rule": saved.get("scale_rule"),
+        "init_scale": saved.get("init_scale"),
+        "opacity_lr": saved.get("lr", {}).get("opacity_logits"),
+    }
+    defaults = {k: strategy.training_defaults[k] if v is None else v for k, v in defaults.items()}
     lr = config.lr
     if lr.opacity_logits is None:
         lr = dataclasses.replace(lr, opacity_logits=defaults["opacity_lr"])

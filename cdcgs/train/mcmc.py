@@ -26,6 +26,7 @@ fill the rest. The count is MCMC's, so it stays at the budget. docs/cdc-gs.md ha
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -45,11 +46,16 @@ __all__ = ["MCMC", "copy_weights", "position_noise", "relocation"]
 def copy_weights(max_copies: int, dtype=torch.float64, device="cpu") -> torch.Tensor:
     """[max_copies, max_copies] W with W[n-1, k] = sum_{i=1}^{n} C(i-1, k) (-1)^k / sqrt(k+1), so
     that S(n, o') = sum_k W[n-1, k] o'^(k+1)."""
+    return _copy_weights(max_copies).to(dtype=dtype, device=device, copy=True)  # the cached table stays as it is
+
+
+@functools.cache
+def _copy_weights(max_copies: int) -> torch.Tensor:
     terms = torch.zeros(max_copies, max_copies, dtype=torch.float64)
     for i in range(max_copies):  # i = (row i of the sum) - 1
         for k in range(i + 1):
             terms[i, k] = math.comb(i, k) * (-1.0) ** k / math.sqrt(k + 1)
-    return terms.cumsum(0).to(dtype=dtype, device=device)
+    return terms.cumsum(0)
 
 
 def relocation(

@@ -4,8 +4,9 @@
 Plain data, so that the configuration and the command line can list the names without importing
 any kernel. ``3dgs`` is the baseline: 3DGS's adaptive density control as the 3DGS code runs it,
 through the same class with every CDC-GS part off, so that ``--log-correlation`` measures Γ exactly
-as the CDC-GS presets do (every view at every densification step, the same w_max). Every preset
-trains with the CDC-GS code's learning rates and initial scales (the training options' defaults).
+as the CDC-GS presets do (every view at every densification step, the same w_max). The CDC-GS and
+3DGS presets train with the CDC-GS code's learning rates and initial scales, the MCMC presets with
+the 3DGS-MCMC code's (the strategies' ``training_defaults``).
 """
 
 from __future__ import annotations

@@ -291,11 +291,8 @@ class ADC(StrategyOptions):
 
     def growth_cap(self) -> tuple[int | None, str]:
         """(cap, rule) of growth: ``target_gaussians`` fills up to it, else ``max_gaussians`` by ``cap_rule``."""
-        if self.target_gaussians is not None:
-            cap = (
-                self.target_gaussians if self.max_gaussians is None else min(self.target_gaussians, self.max_gaussians)
-            )
-            return cap, "fill"
+        if self.target_gaussians is not None:  # never above max_gaussians (__post_init__)
+            return self.target_gaussians, "fill"
         return self.max_gaussians, self.cap_rule
 
     def grow_masks(self, ctx: StepContext, state: dict, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

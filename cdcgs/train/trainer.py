@@ -135,6 +135,12 @@ class Trainer:
                     self.checkpoint_path, f"the checkpoint was trained on {trained_on!r}, not {config.data.data!r}"
                 )
             self.strategy_options = resume_state.get("strategy_options", self.strategy_options)
+        self.strategy = make_strategy(config.strategy, self.strategy_options)
+        self.strategy.check(config.iters)
+        # The options left at none take the resumed run's values, else the strategy's; config.json
+        # records them.
+        saved = resume_state.get("config") if resume_state else None
+        self.config = config = resolve_defaults(config, self.strategy, saved)
         d = config.data
         self.scene = load_scene(
             d.data,
@@ -149,10 +155,6 @@ class Trainer:
         )
         # Each training view's camera, checked and built once (the render would redo it every step).
         self.cameras = [prepare_camera(v.viewmat, v.K, v.width, v.height) for v in self.scene.train]
-        self.strategy = make_strategy(config.strategy, self.strategy_options)
-        self.strategy.check(config.iters)
-        # The options left at none take the strategy's values; config.json records them.
-        self.config = config = resolve_defaults(config, self.strategy)
         # Every random draw of the run comes from these two (torch generators are bound to a
         # device): the device one for strategies, splits and backgrounds, the CPU one for the
         # order of the views.
