@@ -85,7 +85,7 @@ def test_a_signal_at_any_moment_stops_at_an_iteration_and_resumes_byte_identical
         elif moment == "checkpoint write":
             send_during(patch, trainer_module, "save_checkpoint", signum)
         else:
-            send_during(patch, trainer_module, "photometric_loss", signum, at=stops_at)
+            send_during(patch, trainer_module, "fused_photometric_loss", signum, at=stops_at)
         with pytest.raises(Interrupted) as stop:
             Trainer(config(tiny_scene, tmp_path), OPTIONS).run()
     assert stop.value.clean and stop.value.signum == signum and stop.value.exit_status == 128 + signum
@@ -167,7 +167,7 @@ class NanGradient(torch.autograd.Function):
 
 def poison_loss(monkeypatch, at: int, how: str) -> None:
     """At the ``at``-th loss of the run: a NaN loss, or a finite loss with NaN gradients."""
-    real = trainer_module.photometric_loss
+    real = trainer_module.fused_photometric_loss
     calls = {"n": 0}
 
     def poisoned(image, target, weight):
@@ -175,10 +175,11 @@ def poison_loss(monkeypatch, at: int, how: str) -> None:
         if calls["n"] != at:
             return real(image, target, weight)
         if how == "loss":
-            return real(image, target, weight) * float("nan")
+            loss, mse = real(image, target, weight)
+            return loss * float("nan"), mse
         return real(NanGradient.apply(image), target, weight)
 
-    monkeypatch.setattr(trainer_module, "photometric_loss", poisoned)
+    monkeypatch.setattr(trainer_module, "fused_photometric_loss", poisoned)
 
 
 @pytest.mark.parametrize("how", ["loss", "gradients"])

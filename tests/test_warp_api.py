@@ -30,6 +30,9 @@ PUBLIC_KERNEL_API = {
     "blend_backward_lean_kernel",
     "complexity_kernel",
     "knn_search",
+    "ssim_l1_forward_kernel",
+    "ssim_l1_backward_kernel",
+    "ssim_l1_launch_size",
 }
 
 

@@ -152,6 +152,10 @@ class TrainConfig:
         low_open=True,
     )
     antialiased: bool = option(False, "Mip-Splatting opacity compensation in the rasterizer")
+    fused_loss: bool = option(
+        True,
+        "the loss as one Warp kernel forward and one backward (off: kornia's SSIM and torch's L1, the same loss in about 60 torch kernels)",
+    )
     lr: LearningRates = field(default_factory=LearningRates, metadata={"help": "learning rates"})
     eval_every: int = option(
         7000, "evaluate on the test views every n iterations (and at the end; 0: only at the end)", low=0

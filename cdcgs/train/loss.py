@@ -1,9 +1,20 @@
-"""Photometric loss and metrics on [H, W, 3] images in [0, 1]."""
+"""Photometric loss and metrics on [H, W, 3] images in [0, 1].
+
+Two implementations of the 3DGS loss (1 - w) L1 + w (1 - SSIM): :func:`photometric_loss`, kornia's
+SSIM and torch's L1 (the reference, about sixty torch kernels forward and backward), and
+:func:`fused_photometric_loss`, the same loss as one Warp kernel forward and one backward
+(cdcgs.kernels.loss), which also returns the mean squared error for the PSNR. The training uses the
+fused one unless ``--no-fused-loss``.
+"""
 
 import kornia
 import torch
+import warp as wp
 
-__all__ = ["photometric_loss", "psnr", "ssim"]
+from .._interop import warp_scope, wp_arg
+from ..kernels.loss import SSIM_RADIUS, ssim_l1_backward_kernel, ssim_l1_forward_kernel, ssim_l1_launch_size
+
+__all__ = ["fused_photometric_loss", "mse_to_psnr", "photometric_loss", "psnr", "ssim"]
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -13,6 +24,10 @@ def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def psnr(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     mse = ((image.clamp(0, 1) - target) ** 2).mean()
+    return mse_to_psnr(mse)
+
+
+def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:
     return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 
@@ -22,3 +37,93 @@ def photometric_loss(image: torch.Tensor, target: torch.Tensor, ssim_weight: flo
     if ssim_weight == 0:
         return l1
     return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim(image, target))
+
+
+_TARGET_TYPES = {torch.uint8: wp.uint8, torch.float32: wp.float32}
+
+
+def _kernels(target_dtype):
+    spec = {"target": wp.array3d(dtype=target_dtype)}
+    return wp.overload(ssim_l1_forward_kernel, spec), wp.overload(ssim_l1_backward_kernel, spec)
+
+
+class _FusedLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, image, target, ssim_weight: float):
+        height, width = image.shape[:2]
+        target_type = _TARGET_TYPES[target.dtype]
+        forward_kernel, _ = _kernels(target_type)
+        # The three derivative maps of SSIM the backward pass gathers (none for a pure L1).
+        maps = image.new_empty(3, height, width, 3) if ssim_weight else image.new_empty(3, 1, 1, 3)
+        sums = image.new_zeros(2)  # loss, mean squared error of the clamped image
+        inv_count = 1.0 / (3 * height * width)
+        with warp_scope(image.device):
+            wp.launch(
+                forward_kernel,
+                ssim_l1_launch_size(height, width),
+                inputs=[wp_arg(image, wp.vec3), wp_arg(target, target_type), float(ssim_weight), inv_count],
+                outputs=[wp_arg(sums, wp.float32), *(wp_arg(m, wp.vec3) for m in maps)],
+            )
+        ctx.save_for_backward(image, target, maps)
+        ctx.ssim_weight = float(ssim_weight)
+        loss, mse = sums.unbind()
+        ctx.mark_non_differentiable(mse)
+        return loss, mse
+
+    @staticmethod
+    def backward(ctx, grad_loss, _grad_mse):
+        image, target, maps = ctx.saved_tensors
+        height, width = image.shape[:2]
+        target_type = _TARGET_TYPES[target.dtype]
+        _, backward_kernel = _kernels(target_type)
+        grad_image = torch.empty_like(image)
+        grad_loss = grad_loss.reshape(1).float().contiguous()  # read on the device: no host synchronisation
+        with warp_scope(image.device):
+            wp.launch(
+                backward_kernel,
+                height * width,
+                inputs=[
+                    wp_arg(image, wp.vec3),
+                    wp_arg(target, target_type),
+                    ctx.ssim_weight,
+                    1.0 / (3 * height * width),
+                    wp_arg(grad_loss, wp.float32),
+                    *(wp_arg(m, wp.vec3) for m in maps),
+                ],
+                outputs=[wp_arg(grad_image, wp.vec3)],
+            )
+        return grad_image, None, None
+
+
+def fused_photometric_loss(
+    image: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(1 - w) L1 + w (1 - SSIM) as :func:`photometric_loss` computes it, in one Warp kernel
+    forward and one backward, and the mean squared error of ``image.clamp(0, 1)`` against the
+    target (for :func:`mse_to_psnr`; not differentiable).
+
+    Args:
+        image: [H, W, 3] float32, the render (differentiable), H and W at least 6.
+        target: [H, W, 3] on the same device, uint8 (read as value / 255, as photos are kept) or
+            float32 in [0, 1]. Not differentiated.
+        ssim_weight: w in [0, 1].
+    """
+    if not isinstance(image, torch.Tensor) or image.dtype != torch.float32 or image.dim() != 3 or image.shape[2] != 3:
+        raise ValueError(f"image must be a float32 [H, W, 3] tensor, got {_describe(image)}")
+    if not isinstance(target, torch.Tensor) or target.dtype not in _TARGET_TYPES or target.shape != image.shape:
+        raise ValueError(
+            f"target must be a uint8 or float32 tensor of the image's shape {list(image.shape)}, got {_describe(target)}"
+        )
+    if target.device != image.device:
+        raise ValueError(f"target is on {target.device} but the image is on {image.device}")
+    if min(image.shape[:2]) <= SSIM_RADIUS:
+        raise ValueError(f"images must be larger than {SSIM_RADIUS} pixels on each side, got {list(image.shape[:2])}")
+    if not 0.0 <= ssim_weight <= 1.0:
+        raise ValueError(f"ssim_weight must be in [0, 1], got {ssim_weight}")
+    return _FusedLoss.apply(image.contiguous(), target.detach().contiguous(), float(ssim_weight))
+
+
+def _describe(value) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"{value.dtype} {list(value.shape)}"
+    return type(value).__name__

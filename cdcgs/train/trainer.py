@@ -23,7 +23,7 @@ from .config import TrainConfig, background_color, config_to_dict, resolve_defau
 from .evaluate import evaluate, lpips_metric
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
-from .loss import photometric_loss, psnr
+from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import make_optimizer
 from .schedules import position_lr
@@ -328,8 +328,13 @@ class Trainer:
             bad = [name for name, p in self.model.params.items() if not torch.isfinite(p).all()] or [err.name]
             cause = f"the update of iteration {self.step} made {', '.join(bad)} NaN or infinite"
             raise self.guard.diverged(self.step, self.optimizer, cause, self._last_good()) from None
-        target = view.image.float() / 255.0
-        loss = photometric_loss(image, target, config.ssim_weight)
+        if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
+            loss, mse = fused_photometric_loss(image, view.image, config.ssim_weight)
+            image_psnr = mse_to_psnr(mse)
+        else:
+            target = view.image.float() / 255.0
+            loss = photometric_loss(image, target, config.ssim_weight)
+            image_psnr = psnr(image.detach(), target)
         ctx = StepContext(
             step=step,
             total_steps=config.iters,
@@ -348,7 +353,7 @@ class Trainer:
         if regularizer is not None:
             loss = loss + regularizer
         loss.backward()
-        self.guard.record(loss, psnr(image.detach(), target))
+        self.guard.record(loss, image_psnr)
         if self.strategy.refines_at(step):
             self.check_numbers()
         strategy_log = self.strategy.after_backward(ctx, self.strategy_state)
