@@ -622,6 +622,8 @@ def rasterize(
             allocate=allocate,
             zeros=zeros,
             read_count=read_count,
+            conics=_wp(conics.detach(), wp.vec3),
+            opacities=_wp(composited_opacities.detach(), wp.float32),
         )
         absgrad_request = {}  # info.retain_absgrad() puts the AbsGS sums' tensor here for the backward pass
         image, transmittance, depth_sum, last = _Blend.apply(

@@ -53,7 +53,9 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
         outputs=[colors, None],  # None: no finiteness flag
         device=device,
     )
-    bins = bin_gaussians(means2d, radii, depths, width, height)
+    # With the conics and opacities each Gaussian goes only into the tiles its footprint reaches
+    # (without them, into its whole bounding rectangle: the same image, more work).
+    bins = bin_gaussians(means2d, radii, depths, width, height, conics=conics, opacities=composited_opacities)
     image = wp.zeros((height, width), dtype=wp.vec3, device=device)
     transmittance = wp.zeros((height, width), dtype=float, device=device)
     depth_sum = wp.zeros((height, width), dtype=float, device=device)

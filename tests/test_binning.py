@@ -52,26 +52,131 @@ def test_tile_lists_hold_every_composited_pair_in_depth_order(device, seed, n, w
     assert checked_pairs > 0
 
 
-def test_tile_counts_match_rectangles(device):
-    """Each Gaussian's tile count is the number of tiles its pixel-radius rectangle overlaps."""
-    scene = make_scene(300, 70, 45, sh_degree=0, seed=14)
-    _, _, info = cdcgs.rasterize(
-        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=70, height=45
+def _rectangle(mean, radius, tiles_x, tiles_y):
+    """Tiles [x0, x1) x [y0, y1) of a pixel-radius rectangle, as 3DGS bins."""
+    x0 = int(torch.clamp(torch.floor((mean[0] - radius[0]) / TILE_SIZE), 0, tiles_x))
+    x1 = int(torch.clamp(torch.floor((mean[0] + radius[0]) / TILE_SIZE) + 1, 0, tiles_x))
+    y0 = int(torch.clamp(torch.floor((mean[1] - radius[1]) / TILE_SIZE), 0, tiles_y))
+    y1 = int(torch.clamp(torch.floor((mean[1] + radius[1]) / TILE_SIZE) + 1, 0, tiles_y))
+    return x0, x1, y0, y1
+
+
+def _tiles_within(mean, conic, bound, width, height, rect):
+    """Tiles of ``rect`` with a pixel centre where d^T conic d <= bound (float64 brute force)."""
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64) + 0.5, torch.arange(width, dtype=torch.float64) + 0.5, indexing="ij"
     )
-    means2d = info.means2d.detach().cpu().double()
-    radii = info.radii.cpu().double()
-    counts = info.tile_counts.cpu()
+    dx, dy = xs - mean[0], ys - mean[1]
+    inside = conic[0] * dx * dx + 2 * conic[1] * dx * dy + conic[2] * dy * dy <= bound
+    tx, ty = (xs[inside] // TILE_SIZE).long(), (ys[inside] // TILE_SIZE).long()
+    x0, x1, y0, y1 = rect
+    keep = (tx >= x0) & (tx < x1) & (ty >= y0) & (ty < y1)
+    return set(zip(ty[keep].tolist(), tx[keep].tolist()))
+
+
+def test_each_gaussian_is_listed_in_exactly_the_tiles_its_footprint_reaches(device):
+    """A render bins each Gaussian into the tiles where it reaches alpha 1/255 at a pixel centre
+    (d^T conic d <= 2 ln(255 opacity)), not its whole rectangle: every such tile is listed, and
+    no tile where it stays clearly below; fewer pairs than rectangles."""
+    width, height = 70, 45
+    scene = make_scene(300, width, height, sh_degree=0, seed=14)
+    _, _, info = cdcgs.rasterize(
+        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=width, height=height
+    )
+    means2d, conics = info.means2d.detach().cpu().double(), info.conics.detach().cpu().double()
+    opacities, radii = info.opacities.detach().cpu().double(), info.radii.cpu().double()
+    counts, ids = info.tile_counts.cpu(), info.sorted_gauss_ids.cpu()
+    tile_of_entry = torch.zeros(ids.numel(), dtype=torch.long)
+    for tile, (start, end) in enumerate(info.tile_ranges.cpu().tolist()):
+        tile_of_entry[start:end] = tile
+    rectangles = 0
     for i in range(300):
         if not info.visible[i]:
             assert counts[i] == 0
             continue
-        x0 = int(torch.clamp(torch.floor((means2d[i, 0] - radii[i, 0]) / TILE_SIZE), 0, info.tiles_x))
-        x1 = int(torch.clamp(torch.floor((means2d[i, 0] + radii[i, 0]) / TILE_SIZE) + 1, 0, info.tiles_x))
-        y0 = int(torch.clamp(torch.floor((means2d[i, 1] - radii[i, 1]) / TILE_SIZE), 0, info.tiles_y))
-        y1 = int(torch.clamp(torch.floor((means2d[i, 1] + radii[i, 1]) / TILE_SIZE) + 1, 0, info.tiles_y))
-        assert counts[i] == (x1 - x0) * (y1 - y0), i
-        listed = (info.sorted_gauss_ids.cpu() == i).sum()
-        assert listed == counts[i]
+        rect = _rectangle(means2d[i], radii[i], info.tiles_x, info.tiles_y)
+        rectangles += (rect[1] - rect[0]) * (rect[3] - rect[2])
+        bound = 2 * torch.log(opacities[i] * 255)
+        listed = {divmod(t, info.tiles_x) for t in tile_of_entry[ids == i].tolist()}
+        needed = _tiles_within(means2d[i], conics[i], bound, width, height, rect)
+        allowed = _tiles_within(means2d[i], conics[i], bound + 0.05, width, height, rect)
+        assert needed <= listed <= allowed, i
+        assert counts[i] == len(listed)
+    assert info.num_intersections < 0.95 * rectangles
+
+
+def test_without_footprints_bin_gaussians_lists_whole_rectangles(device):
+    """``bin_gaussians`` without conics and opacities: each Gaussian in every tile of its
+    pixel-radius rectangle (the wp.launch user's choice when it has no conics)."""
+    import warp as wp
+
+    from cdcgs.kernels import bin_gaussians
+
+    width, height = 70, 45
+    scene = make_scene(300, width, height, sh_degree=0, seed=14)
+    _, _, info = cdcgs.rasterize(
+        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=width, height=height
+    )
+    bins = bin_gaussians(
+        wp.from_torch(info.means2d.detach().contiguous(), dtype=wp.vec2),
+        wp.from_torch(info.radii.contiguous(), dtype=wp.vec2i),
+        wp.from_torch(info.depths.detach().contiguous()),
+        width,
+        height,
+    )
+    counts, ids = torch.from_numpy(bins.tile_counts.numpy()), torch.from_numpy(bins.sorted_gauss_ids.numpy())
+    for i in range(300):
+        rect = _rectangle(
+            info.means2d[i].detach().cpu().double(), info.radii[i].cpu().double(), bins.tiles_x, bins.tiles_y
+        )
+        area = (rect[1] - rect[0]) * (rect[3] - rect[2]) if info.visible[i] else 0
+        assert counts[i] == area == (ids == i).sum(), i
+    with pytest.raises(ValueError, match="both conics and opacities"):
+        bin_gaussians(
+            wp.from_torch(info.means2d.detach().contiguous(), dtype=wp.vec2),
+            wp.from_torch(info.radii.contiguous(), dtype=wp.vec2i),
+            wp.from_torch(info.depths.detach().contiguous()),
+            width,
+            height,
+            conics=wp.from_torch(info.conics.detach().contiguous(), dtype=wp.vec3),
+        )
+
+
+def test_a_thin_diagonal_gaussian_takes_its_diagonal_tiles_not_its_box(device):
+    """A 1 px wide Gaussian along the image diagonal: its rectangle is every tile; its footprint
+    crosses about three tiles per row of tiles."""
+    import math
+
+    import warp as wp
+
+    from cdcgs.kernels import bin_gaussians
+
+    size = 256
+    # Covariance of a Gaussian with sigma 60 px along (1, 1) and 0.5 px across it.
+    along, across = 60.0**2, 0.5**2
+    a = c = (along + across) / 2
+    b = (along - across) / 2
+    det = a * c - b * b
+    conic = [c / det, -b / det, a / det]
+    opacity = 0.9
+    extent = math.sqrt(2 * math.log(opacity * 255))
+    radius = [math.ceil(extent * math.sqrt(a)), math.ceil(extent * math.sqrt(c))]
+    array = lambda values, dtype: wp.array([values], dtype=dtype, device=device)
+    common = (array([128.0, 128.0], wp.vec2), array(radius, wp.vec2i), wp.array([1.0], dtype=wp.float32, device=device))
+    box = bin_gaussians(*common, size, size)
+    exact = bin_gaussians(
+        *common,
+        size,
+        size,
+        conics=array(conic, wp.vec3),
+        opacities=wp.array([opacity], dtype=wp.float32, device=device),
+    )
+    assert box.num_intersections == 16 * 16
+    assert 16 <= exact.num_intersections <= 3 * 16, exact.num_intersections
+    listed = {
+        divmod(int(t), 16) for t in range(256) if exact.tile_ranges.numpy()[t, 1] > exact.tile_ranges.numpy()[t, 0]
+    }
+    assert {(k, k) for k in range(16)} <= listed, "the diagonal tiles"
 
 
 def test_bin_gaussians_orders_each_tile_by_depth_then_id(device):

@@ -5,6 +5,12 @@ Pure Warp. ``bin_gaussians`` runs the whole sequence (depth sort, count, prefix 
 tile, tile ranges) on Warp arrays; the kernels stay importable from this module for callers that
 manage their own buffers.
 
+A Gaussian's tiles are those of its bounding rectangle (the projection's per-axis radii) or, when
+``bin_gaussians`` gets its conic and opacity, only those whose pixel centres its footprint reaches:
+per row of tiles, the span that the ellipse {d : opacity * exp(-d^T conic d / 2) >= 1/255} covers
+(the pixels the blend composites), so a thin diagonal Gaussian no longer claims its whole box.
+The blend skips those pixels anyway: the image and its gradients do not change, only the work.
+
 Tiles are numbered row-major, ``tile = tile_y * tiles_x + tile_x``, and the tile ranges are one
 [tiles_y * tiles_x, 2] int32 array indexed by that number: ``[start, end)`` of each tile's run in
 the sorted Gaussian ids.
@@ -16,6 +22,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from ._constants import TILE_SIZE
+from .projection import ALPHA_THRESHOLD
 
 __all__ = [
     "TileBins",
@@ -23,8 +30,13 @@ __all__ = [
     "count_tiles_kernel",
     "emit_keys_kernel",
     "gather_counts_kernel",
+    "row_span",
     "tile_ranges_kernel",
 ]
+
+# Added to the footprint's bound 2 ln(opacity / (1/255)) so that rounding (and CUDA's fast exp in
+# the blend) never loses a pixel on its edge: a few thousandths of a pixel wider.
+SPAN_MARGIN = wp.constant(1.0e-3)
 
 
 @wp.func
@@ -49,11 +61,62 @@ def rect_area(rect: wp.vec4i):
     return wp.max(rect[1] - rect[0], 0) * wp.max(rect[3] - rect[2], 0)
 
 
+@wp.func
+def footprint_bound(opacity: float) -> float:
+    """t with {d : d^T conic d <= t} holding every pixel where opacity * exp(-d^T conic d / 2)
+    reaches 1/255 (with SPAN_MARGIN)."""
+    return 2.0 * wp.log(wp.max(opacity / ALPHA_THRESHOLD, 1.0)) + SPAN_MARGIN
+
+
+@wp.func
+def row_span(mean2d: wp.vec2, conic: wp.vec3, bound: float, ty: int, rect: wp.vec4i):
+    """Tiles [x0, x1) of tile row ``ty`` (within ``rect``) holding a pixel centre of the ellipse
+    d^T conic d <= bound around ``mean2d``; x0 >= x1 when it holds none.
+
+    Over the row's band of pixel-centre heights, the ellipse's right edge is concave in the height
+    and its left edge convex: their extremes sit at the ellipse's rightmost and leftmost points,
+    clamped into the band."""
+    side = wp.static(float(TILE_SIZE))
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    det = a * c - b * b
+    lo = float(ty) * side + 0.5 - mean2d[1]  # the band of pixel-centre heights, about the mean
+    hi = lo + side - 1.0
+    reach = wp.sqrt(bound * a / det)  # |dy| of the ellipse's top and bottom
+    lo = wp.max(lo, -reach)
+    hi = wp.min(hi, reach)
+    if lo > hi:
+        return wp.vec2i(0, 0)
+    peak = -b * wp.sqrt(bound / (c * det))  # dy of the rightmost point; the leftmost is at -peak
+    yr = wp.clamp(peak, lo, hi)
+    yl = wp.clamp(-peak, lo, hi)
+    right = mean2d[0] + (-b * yr + wp.sqrt(wp.max(a * bound - det * yr * yr, 0.0))) / a
+    left = mean2d[0] + (-b * yl - wp.sqrt(wp.max(a * bound - det * yl * yl, 0.0))) / a
+    # Tile tx holds the pixel centres tx * side + 0.5 ... tx * side + side - 0.5.
+    x0 = wp.max(int(wp.ceil((left - side + 0.5) / side)), rect[0])
+    x1 = wp.min(int(wp.floor((right - 0.5) / side)) + 1, rect[1])
+    return wp.vec2i(x0, x1)
+
+
+@wp.func
+def tiles_touched(mean2d: wp.vec2, conic: wp.vec3, bound: float, rect: wp.vec4i) -> int:
+    """Tiles of ``rect`` in the footprint's row spans."""
+    count = int(0)
+    for ty in range(rect[2], rect[3]):
+        span = row_span(mean2d, conic, bound, ty, rect)
+        count += wp.max(span[1] - span[0], 0)
+    return count
+
+
 @wp.kernel(enable_backward=False)
 def count_tiles_kernel(
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
     depth_bits: wp.array(dtype=wp.int32),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    exact: int,
     tiles_x: int,
     tiles_y: int,
     tile_counts_out: wp.array(dtype=wp.int32),
@@ -61,17 +124,24 @@ def count_tiles_kernel(
     depth_keys_out: wp.array(dtype=wp.int32),
     ids_out: wp.array(dtype=wp.int32),
 ):
-    """Per Gaussian: the tiles it touches (count and rectangle, 0 for culled ones, whose radii are
-    0) and the keys of the depth sort: the depth's float bits (positive floats sort like their
-    bits), culled Gaussians last, with ``ids_out[i] = i``."""
+    """Per Gaussian: the tiles it touches (count and bounding rectangle, 0 for culled ones, whose
+    radii are 0; with ``exact`` only the tiles of its footprint's row spans, which needs
+    ``conics`` and ``opacities``, else they may be None) and the keys of the depth sort: the
+    depth's float bits (positive floats sort like their bits), culled Gaussians last, with
+    ``ids_out[i] = i``."""
     i = wp.tid()
     r = radii[i]
     rect = wp.vec4i(0, 0, 0, 0)
     key = CULLED_DEPTH_KEY
+    count = int(0)
     if r[0] > 0 and r[1] > 0:
         rect = tile_rect(means2d[i], r, tiles_x, tiles_y)
         key = depth_bits[i]
-    tile_counts_out[i] = rect_area(rect)
+        if exact != 0:
+            count = tiles_touched(means2d[i], conics[i], footprint_bound(opacities[i]), rect)
+        else:
+            count = rect_area(rect)
+    tile_counts_out[i] = count
     tile_rects_out[i] = rect
     depth_keys_out[i] = key
     ids_out[i] = i
@@ -93,11 +163,17 @@ def emit_keys_kernel(
     tile_rects: wp.array(dtype=wp.vec4i),
     depth_order: wp.array(dtype=wp.int32),
     ordered_offsets: wp.array(dtype=wp.int32),
+    tile_counts: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    exact: int,
     tiles_x: int,
     keys_out: wp.array(dtype=wp.int32),
     gauss_ids_out: wp.array(dtype=wp.int32),
 ):
-    """One (tile id, Gaussian) pair per tile a Gaussian touches, Gaussians in depth order.
+    """One (tile id, Gaussian) pair per tile a Gaussian touches (as ``count_tiles_kernel`` counted
+    them, with the same ``exact``), Gaussians in depth order.
 
     ``ordered_offsets`` is the inclusive prefix sum of the tile counts in depth order, so the pairs
     come out ordered by depth (and neighbouring threads write neighbouring pairs); a stable sort by
@@ -106,12 +182,23 @@ def emit_keys_kernel(
     j = wp.tid()
     g = depth_order[j]
     rect = tile_rects[g]
-    k = ordered_offsets[j] - rect_area(rect)
-    for ty in range(rect[2], rect[3]):
-        for tx in range(rect[0], rect[1]):
-            keys_out[k] = ty * tiles_x + tx
-            gauss_ids_out[k] = g
-            k += 1
+    k = ordered_offsets[j] - tile_counts[g]
+    if exact != 0 and rect_area(rect) > 0:
+        mean2d = means2d[g]
+        conic = conics[g]
+        bound = footprint_bound(opacities[g])
+        for ty in range(rect[2], rect[3]):
+            span = row_span(mean2d, conic, bound, ty, rect)
+            for tx in range(span[0], span[1]):
+                keys_out[k] = ty * tiles_x + tx
+                gauss_ids_out[k] = g
+                k += 1
+    else:
+        for ty in range(rect[2], rect[3]):
+            for tx in range(rect[0], rect[1]):
+                keys_out[k] = ty * tiles_x + tx
+                gauss_ids_out[k] = g
+                k += 1
 
 
 @wp.kernel(enable_backward=False)
@@ -161,6 +248,9 @@ def bin_gaussians(
     allocate: Callable | None = None,
     zeros: Callable | None = None,
     read_count: Callable | None = None,
+    *,
+    conics: wp.array | None = None,
+    opacities: wp.array | None = None,
 ) -> TileBins:
     """Bin projected Gaussians into TILE_SIZE x TILE_SIZE tiles and sort each tile's list by depth.
 
@@ -168,6 +258,9 @@ def bin_gaussians(
         means2d: [N] vec2 pixel means; radii: [N] vec2i per-axis pixel radii (0 = culled);
             depths: [N] float32 camera-space depths (> 0 for visible Gaussians).
         width, height: image size in pixels.
+        conics, opacities: [N] vec3 and float32, as the blend reads them: given both, each
+            Gaussian goes only into the tiles where it reaches alpha 1/255 at a pixel centre
+            (the same image, fewer pairs); without them, into every tile of its rectangle.
         allocate, zeros: optional ``(shape, dtype, device) -> wp.array`` allocators (the torch face
             passes ones backed by torch's caching allocator); default ``wp.empty`` / ``wp.zeros``.
         read_count: optional ``(offsets) -> int`` reading the total intersection count, the last
@@ -177,6 +270,9 @@ def bin_gaussians(
     on the host to size the sort buffers.
     """
     device = means2d.device
+    if (conics is None) != (opacities is None):
+        raise ValueError("bin_gaussians: give both conics and opacities (exact footprints) or neither")
+    exact = int(conics is not None)
     allocate = allocate or _warp_empty
     zeros = zeros or (lambda shape, dtype, dev: wp.zeros(shape, dtype=dtype, device=dev))
     n = means2d.shape[0]
@@ -194,7 +290,7 @@ def bin_gaussians(
     wp.launch(
         count_tiles_kernel,
         n,
-        inputs=[means2d, radii, depths.view(wp.int32), tiles_x, tiles_y],
+        inputs=[means2d, radii, depths.view(wp.int32), conics, opacities, exact, tiles_x, tiles_y],
         outputs=[tile_counts, tile_rects, depth_keys, depth_order],
         device=device,
     )
@@ -215,7 +311,7 @@ def bin_gaussians(
         wp.launch(
             emit_keys_kernel,
             n,
-            inputs=[tile_rects, depth_order, ordered_offsets, tiles_x],
+            inputs=[tile_rects, depth_order, ordered_offsets, tile_counts, means2d, conics, opacities, exact, tiles_x],
             outputs=[keys, gauss_ids],
             device=device,
         )
