@@ -54,6 +54,7 @@ STAGES = [
     ("blend backward", ("blend_backward", "rasterize_to_pixels_3dgs_bwd")),
     ("sh colour backward", ("spherical_harmonics_bwd",)),
     ("projection backward", ("projection_ewa_3dgs_fused_bwd",)),
+    ("loss (L1 + D-SSIM)", ("ssim_l1",)),
 ]
 
 

@@ -49,6 +49,8 @@ def make_scene(n, device="cpu"):
         ("void gsplat::rasterize_to_pixels_3dgs_fwd_kernel<3u, float>(...)", "blend forward"),
         ("void gsplat::rasterize_to_pixels_3dgs_bwd_kernel<3u, float>(...)", "blend backward"),
         ("void at::native::vectorized_elementwise_kernel<4, at::native::FillFunctor<float>>", "other (torch)"),
+        ("ssim_l1_forward_kernel_5e1f_cuda_kernel_forward", "loss (L1 + D-SSIM)"),
+        ("ssim_l1_backward_kernel_5e1f_cuda_kernel_forward", "loss (L1 + D-SSIM)"),
     ],
 )
 def test_kernels_sort_into_stages(kernel, stage):
@@ -115,3 +117,24 @@ def test_suite_runs_and_writes_one_json(tmp_path, capsys):
     assert training[0]["iterations"] == 10 and training[1]["psnr"] == quoted["psnr"]  # quoted as it stands
     printed = capsys.readouterr().out
     assert "## cdcgs benchmark suite on cpu" in printed and "| training run |" in printed
+
+
+def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
+    import profile_step
+
+    scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
+    out = tmp_path / "profile.json"
+    argv = ["--data", str(scene), "--gaussians", "200", "500", "--steps", "2", "--warmup", "1", "--out", str(out)]
+    assert profile_step.main([*argv, "--at", "501", "--complexity-views", "2"]) == 0  # during densification
+    rows = json.loads(out.read_text())["rows"]
+    assert [row["gaussians"] for row in rows] == [200, 500], "resampled down and up to the counts asked"
+    for row in rows:
+        assert row["wall_ms_per_step"] > 0
+        assert set(row["parts"]) == set(profile_step.PARTS), "every part of the step is labelled and seen"
+        assert row["parts"]["render forward"]["host_ms"] > 0 and row["parts"]["backward"]["host_ms"] > 0
+        assert row["complexity_pass"]["views"] == 2 and row["complexity_pass"]["wall_ms_per_view"] > 0
+    assert "| ms per step (wall) |" in capsys.readouterr().out
+    boxes = tmp_path / "boxes.json"
+    assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0
+    for exact, box in zip(rows, json.loads(boxes.read_text())["rows"]):
+        assert box["intersections"] > exact["intersections"] > 0, "whole rectangles hold more pairs"
