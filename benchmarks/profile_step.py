@@ -193,7 +193,12 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
         if e.device_type == DeviceType.CUDA:
             kernels[e.name] = kernels.get(e.name, 0.0) + e.time_range.elapsed_us() / 1e3 / views
     top = dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:12])
-    return {"views": views, "wall_ms_per_view": wall_ms, "kernel_ms_per_view": sum(kernels.values()), "top_kernels": top}
+    return {
+        "views": views,
+        "wall_ms_per_view": wall_ms,
+        "kernel_ms_per_view": sum(kernels.values()),
+        "top_kernels": top,
+    }
 
 
 def summarise(prof, steps: int, wall_ms: float, gaussians: int, intersections: int) -> dict:
@@ -203,9 +208,15 @@ def summarise(prof, steps: int, wall_ms: float, gaussians: int, intersections: i
     kernels = [e for e in events if e.device_type == DeviceType.CUDA and not e.name.startswith("Memcpy")]
     copies = [e for e in events if e.device_type == DeviceType.CUDA and e.name.startswith("Memcpy")]
     stages: dict[str, float] = {}
+    by_name: dict[str, list] = {}
     for e in kernels:
         stage = stage_of(e.name)
-        stages[stage] = stages.get(stage, 0.0) + e.time_range.elapsed_us() / 1e3 / steps
+        ms = e.time_range.elapsed_us() / 1e3 / steps
+        stages[stage] = stages.get(stage, 0.0) + ms
+        entry = by_name.setdefault(e.name, [0.0, 0.0])
+        entry[0] += ms
+        entry[1] += 1.0 / steps
+    top = sorted(by_name.items(), key=lambda kv: -kv[1][0])[:25]
     # The GPU busy share: the union of the kernel and copy intervals over the window they span.
     intervals = sorted((e.time_range.start, e.time_range.end) for e in kernels + copies)
     busy, span = 0.0, 0.0
@@ -243,6 +254,9 @@ def summarise(prof, steps: int, wall_ms: float, gaussians: int, intersections: i
         "device_to_host_copies_per_step": sum(1 for e in copies if "DtoH" in e.name) / steps,
         "host_to_device_copies_per_step": sum(1 for e in copies if "HtoD" in e.name) / steps,
         "stages_gpu_ms": stages,
+        "top_kernels": [
+            {"name": name[:160], "ms_per_step": ms, "launches_per_step": count} for name, (ms, count) in top
+        ],
         "parts": parts,
     }
 

@@ -3,7 +3,7 @@
 import kornia
 import pytest
 import torch
-from helpers import tiny_config
+from helpers import DEFAULT_DEVICE, tiny_config
 
 from cdcgs.train.loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from cdcgs.train.trainer import Trainer
@@ -98,6 +98,6 @@ def test_training_with_the_fused_loss_follows_the_reference_loss(tiny_scene, tmp
         trainer.run()
         losses[fused] = trainer.history["loss"]
     assert losses[True] == pytest.approx(losses[False], rel=1e-4)
-    image, photo = pair(20, 20)
+    image, photo = (t.to(DEFAULT_DEVICE) for t in pair(20, 20))
     fused, _ = fused_photometric_loss(image, photo, 0.2)
     assert fused.item() == pytest.approx(photometric_loss(image, photo.float() / 255, 0.2).item(), rel=1e-5)
