@@ -190,7 +190,7 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
         sync()
     kernels: dict[str, float] = {}
     for e in prof.events():
-        if e.device_type == DeviceType.CUDA:
+        if e.device_type == DeviceType.CUDA and not _annotation(e):
             kernels[e.name] = kernels.get(e.name, 0.0) + e.time_range.elapsed_us() / 1e3 / views
     top = dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:12])
     return {
@@ -201,12 +201,19 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
     }
 
 
+def _annotation(event) -> bool:
+    return bool(getattr(event, "is_user_annotation", False)) or event.name in PARTS or "#" in event.name
+
+
 def summarise(prof, steps: int, wall_ms: float, gaussians: int, intersections: int) -> dict:
     from torch.autograd import DeviceType
 
     events = prof.events()
-    kernels = [e for e in events if e.device_type == DeviceType.CUDA and not e.name.startswith("Memcpy")]
-    copies = [e for e in events if e.device_type == DeviceType.CUDA and e.name.startswith("Memcpy")]
+    # The device rows also hold the labelled ranges as GPU-side spans (user annotations: the
+    # parts, torch's own "Optimizer.step#..."): they are not kernels.
+    device = [e for e in events if e.device_type == DeviceType.CUDA and not _annotation(e)]
+    kernels = [e for e in device if not e.name.startswith("Memcpy")]
+    copies = [e for e in device if e.name.startswith("Memcpy")]
     stages: dict[str, float] = {}
     by_name: dict[str, list] = {}
     for e in kernels:
