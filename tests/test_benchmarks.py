@@ -138,3 +138,26 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
     assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0
     for exact, box in zip(rows, json.loads(boxes.read_text())["rows"]):
         assert box["intersections"] > exact["intersections"] > 0, "whole rectangles hold more pairs"
+
+
+def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs(tmp_path, capsys):
+    import training_table
+
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
+    docs = tmp_path / "bench.md"
+    docs.write_text(f"# Bench\n\nbefore\n{training_table.BEGIN}\nold table\n{training_table.END}\nafter\n")
+    out = tmp_path / "runs"
+    argv = ["--data", str(scene), "--out", str(out), "--runs", "3dgs", "gsplat", "--iters", "12", "--docs", str(docs)]
+    assert training_table.main([*argv, "--train-option=--device=cpu"]) == 0
+    metrics = json.loads((out / "3dgs" / "metrics.json").read_text())
+    assert metrics["iterations"] == 12 and not (out / ".warm-3dgs").exists()
+    text = docs.read_text()
+    assert "old table" not in text and text.startswith("# Bench\n\nbefore\n") and text.endswith("after\n")
+    row = next(line for line in text.splitlines() if line.startswith("| 3dgs |"))
+    assert f"{metrics['num_gaussians']:,}" in row and f"{metrics['test']['psnr']:.2f}" in row
+    assert "| gsplat | skipped:" in text, "no gsplat or no CUDA here: said, not hidden"
+    # A finished run is read, not trained again.
+    assert training_table.main([*argv, "--runs", "3dgs"]) == 0
+    assert "3dgs: read the finished run" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        training_table.main([*argv, "--runs", "nonsense"])

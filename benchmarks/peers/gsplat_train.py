@@ -23,7 +23,9 @@ Ours, so that the two runs differ in renderer and densification only:
   size, every 8th image by sorted name held out, uint8 images on the GPU, no world normalisation);
   the Gaussians from ``GaussianModel.from_points`` (exact 3-NN scales, identity rotations, opacity
   0.1, SH DC from the point colours, the rest 0);
-- the loss ``cdcgs.train.loss.photometric_loss`` (0.8 L1 + 0.2 (1 - kornia SSIM, 11 px window)),
+- the loss 0.8 L1 + 0.2 (1 - SSIM, 11 px Gaussian window) as ``cdcgs train`` computes it: the
+  fused kernels ``cdcgs.train.loss.fused_photometric_loss`` (``--loss kornia``: kornia's SSIM and
+  torch's L1, what this harness used before issue 21; gsplat's own trainer fuses its SSIM too),
   black background, the view order of ``Trainer._next_view`` (a fresh randperm per epoch from
   Generator(seed + 1)), the seeds of ``Trainer._setup``, Adam fused on CUDA (``--adam default``:
   torch's default, foreach, as simple_trainer);
@@ -63,7 +65,7 @@ wp.config.log_level = wp.LOG_WARNING  # before cdcgs initialises Warp: no banner
 from cdcgs.errors import InputError
 from cdcgs.io import GaussianPly, load_scene, scene_extent, write_ply
 from cdcgs.train.evaluate import describe_metrics, evaluate
-from cdcgs.train.loss import photometric_loss, psnr
+from cdcgs.train.loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from cdcgs.train.model import GaussianModel
 
 EXPECTED_VERSION = "1.5.3"
@@ -202,10 +204,15 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
         view = scene.train[index]
         image, _, info = render(view, *cameras[index], sh_degree_at(step))
         strategy.step_pre_backward(params=params, optimizers=optimizers, state=state, step=step, info=info)
-        target = view.image.float() / 255.0
-        loss = photometric_loss(image, target, SSIM_WEIGHT)
+        if args.loss == "fused":
+            loss, mse = fused_photometric_loss(image, view.image, SSIM_WEIGHT)
+            image_psnr = mse_to_psnr(mse)
+        else:
+            target = view.image.float() / 255.0
+            loss = photometric_loss(image, target, SSIM_WEIGHT)
+            image_psnr = psnr(image.detach(), target)
         loss.backward()
-        loss_value, psnr_value = torch.stack([loss.detach(), psnr(image.detach(), target)]).tolist()
+        loss_value, psnr_value = torch.stack([loss.detach(), image_psnr]).tolist()
         if not math.isfinite(loss_value):
             bar.close()
             print(f"gsplat_train: the loss became {loss_value} at iteration {step + 1}; stopped", file=sys.stderr)
@@ -265,6 +272,7 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
             "initial_points": int(scene.points.shape[0]),
             "scene_scale": scene_scale,
             "adam": "fused" if fused else "torch default",
+            "loss": args.loss,
             "renderer": f"gsplat {api.version} rasterization(packed=False, rasterize_mode='classic')",
         },
     }
@@ -289,6 +297,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     add("--images", default=None, help="COLMAP image folder, as cdcgs train --images (default: images/)")
     add("--seed", type=int, default=0, help="seed of every random draw, as cdcgs train --seed")
     add("--adam", choices=("fused", "default"), default="fused", help="fused as ours, or torch's default as gsplat's")
+    add(
+        "--loss", choices=("fused", "kornia"), default="fused", help="the loss kernels of cdcgs train, or kornia's SSIM"
+    )
     add("--progress", action=argparse.BooleanOptionalAction, default=True, help="show a progress bar")
     add("--overwrite", action="store_true", help="replace a run already in --out")
     args = parser.parse_args(argv)

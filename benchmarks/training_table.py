@@ -1,0 +1,183 @@
+"""Whole trainings one after another on one GPU, and their table written into the docs.
+
+    python benchmarks/training_table.py --data ../shared/data/bonsai --images images --out runs \
+        [--runs 3dgs 3dgs-gsplat-rates cdc gsplat] [--iters 30000] [--docs docs/benchmarks.md]
+
+Each run is its own process, started after the one before it ended, so that none shares the GPU
+or the host; each is preceded by a 20-iteration run of the same command into a scratch folder,
+so that compiling kernels (Warp's, gsplat's JIT extension) stays out of the timed one. The runs:
+
+- ``3dgs``, ``cdc``, any other ``cdcgs train --strategy`` preset: ``cdcgs train`` with its defaults;
+- ``3dgs-gsplat-rates``: ``3dgs`` with gsplat's opacity learning rate and initial scales
+  (``--lr-opacity-logits 0.05 --scale-rule 3dgs``), the row to set beside gsplat;
+- ``gsplat``: gsplat's DefaultStrategy through ``benchmarks/peers/gsplat_train.py`` (the same data,
+  loss, initialisation and evaluation); skipped, and said so, where gsplat or CUDA is missing.
+
+The table (training time, it/s, test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, peak GPU
+memory, with the machine, date and commit) is printed, written to ``--out``/table.md and, with
+``--docs``, put into that file between the markers ``<!-- training-table:begin -->`` and
+``<!-- training-table:end -->`` (they must be there). Runs whose folder already holds a finished
+run are read, not trained again (``--retrain`` trains them anew).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+BEGIN, END = "<!-- training-table:begin -->", "<!-- training-table:end -->"
+GSPLAT_RATES = ["--lr-opacity-logits", "0.05", "--scale-rule", "3dgs"]
+DEFAULT_RUNS = ["3dgs", "3dgs-gsplat-rates", "cdc", "gsplat"]
+
+
+def command(run: str, args, out: str, iters: int) -> list[str]:
+    """The command line of one run."""
+    common = ["--data", args.data, "--out", out, "--iters", str(iters), "--seed", str(args.seed)]
+    if args.images:
+        common += ["--images", args.images]
+    if run == "gsplat":
+        return [sys.executable, os.path.join(HERE, "peers", "gsplat_train.py"), *common, "--no-progress", "--overwrite"]
+    strategy, extra = (run, []) if run != "3dgs-gsplat-rates" else ("3dgs", GSPLAT_RATES)
+    train = [sys.executable, "-m", "cdcgs", "train", *common, "--strategy", strategy, *extra]
+    return [*train, "--no-progress", "--checkpoint-every", "0", "--overwrite", *args.train_options]
+
+
+def gsplat_missing() -> str | None:
+    """Why the gsplat peer cannot run here, or None."""
+    sys.path.insert(0, os.path.join(HERE, "peers"))
+    try:
+        import gsplat_train
+
+        _, problems = gsplat_train.load_gsplat()
+    finally:
+        sys.path.pop(0)
+    return "; ".join(problems) if problems else None
+
+
+def train(run: str, args) -> dict:
+    """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}."""
+    folder = os.path.join(args.out, run)
+    metrics_path = os.path.join(folder, "metrics.json")
+    if os.path.isfile(metrics_path) and not args.retrain:
+        print(f"{run}: read the finished run in {folder}", flush=True)
+        with open(metrics_path) as f:
+            return json.load(f)
+    if run == "gsplat":
+        why = gsplat_missing()
+        if why:
+            print(f"gsplat: skipped ({why})", flush=True)
+            return {"skipped": why}
+    scratch = os.path.join(args.out, f".warm-{run}")
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
+    for iters, out in ((min(20, args.iters), scratch), (args.iters, folder)):
+        print(f"{run}: {' '.join(command(run, args, out, iters)[1:])}", flush=True)
+        done = subprocess.run(command(run, args, out, iters), cwd=ROOT, env=environment)
+        if done.returncode != 0:
+            raise SystemExit(f"training_table: {run} failed (exit status {done.returncode}); see its output above")
+    shutil.rmtree(scratch, ignore_errors=True)
+    with open(metrics_path) as f:
+        return json.load(f)
+
+
+def commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _number(value, digits: int) -> str:
+    return "—" if value is None else f"{value:.{digits}f}"
+
+
+def table(rows: dict[str, dict], machine: str, iters: int, data: str, images: str | None) -> str:
+    """The markdown table of the runs, with what they ran on."""
+    day = datetime.date.today().isoformat()
+    scene = f"{os.path.basename(os.path.normpath(data))} `{images or 'images'}`"
+    lines = [
+        f"{scene}, {iters:,} iterations, each run alone on {machine}, one after another, {day}, commit {commit()}",
+        "(`python benchmarks/training_table.py`):",
+        "",
+        "| run | training time | it/s | test PSNR | SSIM | LPIPS-VGG | LPIPS-Alex | Gaussians | peak GPU memory |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for run, m in rows.items():
+        if "skipped" in m:
+            lines.append(f"| {run} | skipped: {m['skipped']} | | | | | | | |")
+            continue
+        test = m.get("test", {})
+        memory = m.get("peak_gpu_memory_gb")
+        lines.append(
+            f"| {run} | {m['train_seconds']:.1f} s | {m['iterations_per_second']:.1f} | {_number(test.get('psnr'), 2)} "
+            f"| {_number(test.get('ssim'), 3)} | {_number(test.get('lpips_vgg'), 3)} | {_number(test.get('lpips_alex'), 3)} "
+            f"| {m['num_gaussians']:,} | {_number(memory, 2) + ' GB' if memory is not None else '—'} |"
+        )
+    peer = rows.get("gsplat", {})
+    if "train_seconds" in peer:
+        for run in rows:
+            if run != "gsplat" and "train_seconds" in rows[run]:
+                ratio = rows[run]["train_seconds"] / peer["train_seconds"]
+                lines.append(f"\n`{run}` took {ratio:.2f}× gsplat's training time.")
+    return "\n".join(lines) + "\n"
+
+
+def write_docs(path: str, text: str) -> None:
+    with open(path) as f:
+        content = f.read()
+    if BEGIN not in content or END not in content or content.index(BEGIN) > content.index(END):
+        raise SystemExit(f"training_table: {path} has no {BEGIN} ... {END} block to write the table into")
+    head, rest = content.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    with open(path, "w") as f:
+        f.write(f"{head}{BEGIN}\n{text}{END}{tail}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", required=True, help="scene folder")
+    parser.add_argument("--images", default=None, help="image folder of the scene, e.g. images")
+    parser.add_argument("--out", required=True, help="folder of the runs (one subfolder each)")
+    parser.add_argument("--runs", nargs="+", default=DEFAULT_RUNS, help=f"default: {' '.join(DEFAULT_RUNS)}")
+    parser.add_argument("--iters", type=int, default=30_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--docs", default=None, help="markdown file with the table's markers")
+    parser.add_argument("--retrain", action="store_true", help="train runs whose folder already holds one")
+    parser.add_argument(
+        "--train-option", dest="train_options", action="append", default=[], help="extra cdcgs train argument"
+    )
+    args = parser.parse_args(argv)
+    if not os.path.isdir(args.data):
+        parser.error(f"--data {args.data!r} is not a folder")
+    if args.iters < 1:
+        parser.error(f"--iters must be positive, got {args.iters}")
+    if args.docs and not os.path.isfile(args.docs):
+        parser.error(f"--docs {args.docs!r} is not a file")
+    from cdcgs.train.presets import PRESETS
+
+    unknown = [r for r in args.runs if r not in (*PRESETS, "3dgs-gsplat-rates", "gsplat")]
+    if unknown:
+        parser.error(f"--runs: unknown {', '.join(unknown)} (presets, 3dgs-gsplat-rates or gsplat)")
+    os.makedirs(args.out, exist_ok=True)
+    rows = {run: train(run, args) for run in args.runs}
+    machines = {m["device"] for m in rows.values() if "device" in m}
+    text = table(rows, " / ".join(sorted(machines)) or "unknown", args.iters, args.data, args.images)
+    print("\n" + text)
+    with open(os.path.join(args.out, "table.md"), "w") as f:
+        f.write(text)
+    if args.docs:
+        write_docs(args.docs, text)
+        print(f"written into {args.docs}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
