@@ -81,14 +81,16 @@ class GaussianModel:
         return torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
 
     def render_args(self) -> dict:
-        """Keyword arguments of :func:`cdcgs.rasterize` for the current state (differentiable)."""
-        k = (self.sh_degree + 1) ** 2
+        """Keyword arguments of :func:`cdcgs.rasterize` for the current state (differentiable).
+
+        Every coefficient goes to the render, which evaluates those of ``sh_degree`` (a slice to
+        the degree would cost a copy of the coefficients each iteration until degree 3)."""
         return dict(
             means=self.params["means"],
             quats=self.params["quats"],
             scales=self.scales(),
             opacities=self.opacities(),
-            sh=self.sh()[:, :k],
+            sh=self.sh(),
             sh_degree=self.sh_degree,
         )
 
