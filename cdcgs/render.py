@@ -214,25 +214,33 @@ def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tenso
 
 class _ShColor(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, sh, sh_degree: int, camera_center, radii, nonfinite):
+    def forward(ctx, means, sh, sh_rest, sh_degree: int, camera_center, radii, nonfinite):
         colors = means.new_empty(means.shape[0], 3)
         with _warp_scope(means.device):
             wp.launch(
                 sh_to_color_kernel,
                 means.shape[0],
-                inputs=[_arg(means, wp.vec3), _arg(sh, wp.vec3), sh_degree, camera_center, _arg(radii, wp.vec2i)],
+                inputs=[
+                    _arg(means, wp.vec3),
+                    _arg(sh, wp.vec3),
+                    None if sh_rest is None else _arg(sh_rest, wp.vec3),
+                    sh_degree,
+                    camera_center,
+                    _arg(radii, wp.vec2i),
+                ],
                 outputs=[_arg(colors, wp.vec3), _arg(nonfinite, wp.int32)],
             )
-        ctx.save_for_backward(means, sh, radii, colors)
+        ctx.save_for_backward(means, sh, sh_rest, radii, colors)
         ctx.sh_degree = sh_degree
         ctx.camera_center = camera_center
         return colors
 
     @staticmethod
     def backward(ctx, grad_colors):
-        means, sh, radii, colors = ctx.saved_tensors
+        means, sh, sh_rest, radii, colors = ctx.saved_tensors
         grad_means = torch.empty_like(means)
         grad_sh = torch.empty_like(sh)
+        grad_sh_rest = None if sh_rest is None else torch.empty_like(sh_rest)
         grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
         grouped = means.device.type == "cuda"  # one thread per SH coefficient (half-warp shuffles)
         with _warp_scope(means.device):
@@ -242,15 +250,20 @@ class _ShColor(torch.autograd.Function):
                 inputs=[
                     _arg(means, wp.vec3),
                     _arg(sh, wp.vec3),
+                    None if sh_rest is None else _arg(sh_rest, wp.vec3),
                     ctx.sh_degree,
                     ctx.camera_center,
                     _arg(radii, wp.vec2i),
                     _arg(colors, wp.vec3),
                     _arg(grad_colors, wp.vec3),
                 ],
-                outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3)],
+                outputs=[
+                    _arg(grad_means, wp.vec3),
+                    _arg(grad_sh, wp.vec3),
+                    None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3),
+                ],
             )
-        return grad_means, grad_sh, None, None, None, None
+        return grad_means, grad_sh, grad_sh_rest, None, None, None, None
 
 
 class _Blend(torch.autograd.Function):
@@ -492,6 +505,7 @@ def rasterize(
     opacities: torch.Tensor,
     sh: torch.Tensor | None = None,
     *,
+    sh_rest: torch.Tensor | None = None,
     viewmat=None,
     K=None,
     width: int | None = None,
@@ -511,6 +525,8 @@ def rasterize(
         scales: [N, 3] standard deviations along the Gaussian's axes (not log).
         opacities: [N] opacities in [0, 1] (after the sigmoid).
         sh: [N, K, 3] real spherical-harmonics coefficients, 3DGS convention, K >= (sh_degree+1)^2.
+        sh_rest: with it, ``sh`` holds the degree-0 coefficients [N, 1, 3] and ``sh_rest`` the
+            others [N, K - 1, 3], as a trainer keeps them (the render then concatenates nothing).
         viewmat: [4, 4] world-to-camera matrix (camera x right, y down, z forward). K: [3, 3]
             intrinsics in pixels; (cx, cy) continuous, pixel (i, j) centred at (i+0.5, j+0.5).
             Either may be a tensor on any device, a numpy array or nested lists (read on the host).
@@ -545,9 +561,14 @@ def rasterize(
     opacities = _check_tensor("opacities", opacities, (n,), device)
     if (sh is None) == (colors is None):
         raise ValueError("pass exactly one of sh ([N, K, 3] coefficients) and colors ([N, 3])")
+    if sh_rest is not None and sh is None:
+        raise ValueError("sh_rest needs sh (its degree-0 coefficients, [N, 1, 3])")
     if sh is not None:
-        sh = _check_tensor("sh", sh, (n, -1, 3), device)
+        sh = _check_tensor("sh", sh, (n, 1 if sh_rest is not None else -1, 3), device)
         k = sh.shape[1]
+        if sh_rest is not None:
+            sh_rest = _check_tensor("sh_rest", sh_rest, (n, -1, 3), device)
+            k += sh_rest.shape[1]
         if sh_degree is None:
             sh_degree = math.isqrt(k) - 1
             if (sh_degree + 1) ** 2 != k:
@@ -601,7 +622,9 @@ def rasterize(
             means, quats, scales, opacities, prepared.camera, antialiased, nonfinite
         )
         if sh is not None:
-            colors = _ShColor.apply(means, sh, sh_degree, prepared.center, radii, nonfinite[len(checked) - 1 :])
+            colors = _ShColor.apply(
+                means, sh, sh_rest, sh_degree, prepared.center, radii, nonfinite[len(checked) - 1 :]
+            )
 
         def read_count(offsets: wp.array) -> int:
             # The single host synchronisation of a render: the intersection count sizes the sort

@@ -49,7 +49,8 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
     wp.launch(
         sh_to_color_kernel,
         dim=n,
-        inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), sh_degree, camera.center, radii],
+        # None: every coefficient in the one [N, K] array (a trainer may pass degree 0 and the rest apart)
+        inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), None, sh_degree, camera.center, radii],
         outputs=[colors, None],  # None: no finiteness flag
         device=device,
     )

@@ -363,3 +363,26 @@ def test_kernels_run_on_torch_current_stream():
     # cancels (a small sum of large terms) can differ by more than 1e-5 of itself.
     for a, b in zip(grads_default, grads_side):
         torch.testing.assert_close(a, b, atol=1e-5 * b.abs().max().item(), rtol=1e-5)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_sh_in_two_tensors_renders_and_differentiates_as_one(device, degree):
+    """``rasterize(sh=dc, sh_rest=rest)`` (what the trainer passes: no concatenation) gives the
+    image and the gradients of ``rasterize(sh=cat([dc, rest]))``, at degrees below the stored 3."""
+    scene = make_scene(150, 40, 30, sh_degree=3, seed=21)
+    means, quats, scales, opacities, sh = (t.to(device) for t in scene.tensors())
+    camera = dict(viewmat=scene.viewmat, K=scene.K, width=40, height=30, sh_degree=degree)
+    dc, rest = sh[:, :1].clone().requires_grad_(), sh[:, 1:].clone().requires_grad_()
+    joined = sh.clone().requires_grad_()
+    image_two, _, _ = cdcgs.rasterize(means, quats, scales, opacities, dc, sh_rest=rest, **camera)
+    image_one, _, _ = cdcgs.rasterize(means, quats, scales, opacities, joined, **camera)
+    weights = torch.rand(image_one.shape, generator=torch.Generator().manual_seed(2)).to(device)
+    (image_two * weights).sum().backward()
+    (image_one * weights).sum().backward()
+    assert torch.equal(image_two, image_one)
+    torch.testing.assert_close(torch.cat([dc.grad, rest.grad], dim=1), joined.grad, rtol=0, atol=0)
+    assert (joined.grad[:, (degree + 1) ** 2 :] == 0).all() and joined.grad[:, 0].abs().max() > 0
+    with pytest.raises(ValueError, match=r"sh must have shape \[150, 1, 3\], got \[150, 16, 3\]"):
+        cdcgs.rasterize(means, quats, scales, opacities, sh, sh_rest=rest, **camera)
+    with pytest.raises(ValueError, match="sh_rest needs sh"):
+        cdcgs.rasterize(means, quats, scales, opacities, colors=sh[:, 0], sh_rest=rest, **camera)

@@ -121,16 +121,20 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         )
         colors = wp.empty(n, dtype=wp.vec3, device=device)
         wp.launch(
-            sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device
+            sh_to_color_kernel,
+            n,
+            inputs=[means, sh, None, degree, center, radii],
+            outputs=[colors, None],
+            device=device,
         )
         assert (colors.numpy()[culled] == 0).all() and (colors.numpy()[~culled] > 0).any()
         generated = wp.zeros(n, dtype=wp.vec3, device=device), wp.zeros((n, 16), dtype=wp.vec3, device=device)
         wp.launch(
             sh_to_color_kernel,
             n,
-            inputs=[means, sh, degree, center, radii],
+            inputs=[means, sh, None, degree, center, radii],
             outputs=[colors, None],
-            adj_inputs=[*generated, 0, wp.vec3(), None],
+            adj_inputs=[*generated, None, 0, wp.vec3(), None],
             adj_outputs=[grad_colors, None],
             adjoint=True,
             device=device,
@@ -139,8 +143,8 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         wp.launch(
             sh_to_color_backward_kernel,
             n,
-            inputs=[means, sh, degree, center, radii, colors, grad_colors],
-            outputs=list(written),
+            inputs=[means, sh, None, degree, center, radii, colors, grad_colors],
+            outputs=[*written, None],
             device=device,
         )
         for name, ours, theirs in zip(("means", "sh"), written, generated):
@@ -178,7 +182,11 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             center = wp.vec3(0.1, -0.2, 3.0)
             colors = wp.empty(n, dtype=wp.vec3, device=device)
             wp.launch(
-                sh_to_color_kernel, n, inputs=[means, sh, degree, center, radii], outputs=[colors, None], device=device
+                sh_to_color_kernel,
+                n,
+                inputs=[means, sh, None, degree, center, radii],
+                outputs=[colors, None],
+                device=device,
             )
             clamped = (np.arange(n) % 4 == 0) & ~culled
             assert (colors.numpy()[clamped, 1] == 0).all() and (colors.numpy()[~culled] > 0).any()
@@ -189,12 +197,26 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             ):
                 grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grad_sh = wp.full((n, stored), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                inputs = [means, sh, degree, center, radii, colors, grad_colors]
-                wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_sh], device=device)
+                inputs = [means, sh, None, degree, center, radii, colors, grad_colors]
+                wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_sh, None], device=device)
                 outputs[name] = (grads.numpy(), grad_sh.numpy())
+                if stored > 1:  # the same with the coefficients in two arrays, degree 0 apart
+                    dc = wp.array(coefficients[:, :1].copy(), dtype=wp.vec3, device=device)
+                    rest = wp.array(coefficients[:, 1:].copy(), dtype=wp.vec3, device=device)
+                    grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
+                    grad_dc = wp.full((n, 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
+                    grad_rest = wp.full((n, stored - 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
+                    inputs = [means, dc, rest, degree, center, radii, colors, grad_colors]
+                    wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_dc, grad_rest], device=device)
+                    both = np.concatenate([grad_dc.numpy(), grad_rest.numpy()], axis=1)
+                    outputs[name + " split"] = (grads.numpy(), both)
             for ours, theirs in zip(outputs["grouped"], outputs["per gaussian"]):
                 assert (theirs != 7.0).all()  # every entry written
                 np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=1e-4)
+            for name in ("grouped split", "per gaussian split"):
+                for ours, theirs in zip(outputs.get(name, ()), outputs["per gaussian"]):
+                    assert (ours != 7.0).all()
+                    np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=1e-4)
 
 
 def test_lean_blend_adjoint_equals_the_full_one(device):

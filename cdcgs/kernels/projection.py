@@ -230,10 +230,40 @@ def project_gaussians_kernel(
     radii_out[i] = wp.vec2i(int(wp.ceil(radius_x)), int(wp.ceil(radius_y)))
 
 
+@wp.func
+def sh_coefficient(gauss_sh: wp.array2d(dtype=wp.vec3), gauss_sh_rest: wp.array2d(dtype=wp.vec3), i: int, j: int):
+    """Coefficient j of Gaussian i: from ``gauss_sh`` [N, K] alone, or, when ``gauss_sh_rest`` is
+    given (not empty), the degree-0 one from ``gauss_sh`` [N, 1] and the others from
+    ``gauss_sh_rest`` [N, K - 1] (the two tensors a trainer keeps, no concatenation)."""
+    if j == 0 or gauss_sh_rest.shape[0] == 0:
+        return gauss_sh[i, j]
+    return gauss_sh_rest[i, j - 1]
+
+
+@wp.func
+def sh_stored(gauss_sh: wp.array2d(dtype=wp.vec3), gauss_sh_rest: wp.array2d(dtype=wp.vec3)) -> int:
+    """Coefficients stored per Gaussian, over the one or two arrays."""
+    if gauss_sh_rest.shape[0] == 0:
+        return gauss_sh.shape[1]
+    return 1 + gauss_sh_rest.shape[1]
+
+
+@wp.func
+def store_sh_gradient(
+    grad_sh_out: wp.array2d(dtype=wp.vec3), grad_sh_rest_out: wp.array2d(dtype=wp.vec3), i: int, j: int, value: wp.vec3
+):
+    """Write coefficient j's gradient where :func:`sh_coefficient` reads it."""
+    if j == 0 or grad_sh_rest_out.shape[0] == 0:
+        grad_sh_out[i, j] = value
+    else:
+        grad_sh_rest_out[i, j - 1] = value
+
+
 @wp.kernel
 def sh_to_color_kernel(
     gauss_means: wp.array(dtype=wp.vec3),
     gauss_sh: wp.array2d(dtype=wp.vec3),
+    gauss_sh_rest: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
     radii: wp.array(dtype=wp.vec2i),
@@ -241,6 +271,9 @@ def sh_to_color_kernel(
     nonfinite_out: wp.array(dtype=wp.int32),
 ):
     """View-dependent colour max(SH . basis(dir) + 0.5, 0), dir from the camera centre to the mean (3DGS).
+
+    ``gauss_sh`` [N, K] holds the coefficients; or pass the degree-0 ones there [N, 1] and the
+    others in ``gauss_sh_rest`` [N, K - 1] (None: all in ``gauss_sh``).
 
     ``radii`` from the projection skips culled Gaussians (radius 0: colour 0, no gradient), which
     no pixel composites; pass None to colour every Gaussian. ``nonfinite_out`` (optional, None
@@ -253,35 +286,40 @@ def sh_to_color_kernel(
         if radii[i][0] <= 0:
             colors_out[i] = wp.vec3(0.0, 0.0, 0.0)
             return
-    color = SH_C0 * gauss_sh[i, 0]
+    color = SH_C0 * sh_coefficient(gauss_sh, gauss_sh_rest, i, 0)
     if sh_degree > 0:
         d = wp.normalize(gauss_means[i] - camera_center)
         x = d[0]
         y = d[1]
         z = d[2]
-        color = color - SH_C1 * y * gauss_sh[i, 1] + SH_C1 * z * gauss_sh[i, 2] - SH_C1 * x * gauss_sh[i, 3]
+        color = (
+            color
+            - SH_C1 * y * sh_coefficient(gauss_sh, gauss_sh_rest, i, 1)
+            + SH_C1 * z * sh_coefficient(gauss_sh, gauss_sh_rest, i, 2)
+            - SH_C1 * x * sh_coefficient(gauss_sh, gauss_sh_rest, i, 3)
+        )
         if sh_degree > 1:
             xx = x * x
             yy = y * y
             zz = z * z
             color = (
                 color
-                + SH_C2_0 * x * y * gauss_sh[i, 4]
-                + SH_C2_1 * y * z * gauss_sh[i, 5]
-                + SH_C2_2 * (2.0 * zz - xx - yy) * gauss_sh[i, 6]
-                + SH_C2_3 * x * z * gauss_sh[i, 7]
-                + SH_C2_4 * (xx - yy) * gauss_sh[i, 8]
+                + SH_C2_0 * x * y * sh_coefficient(gauss_sh, gauss_sh_rest, i, 4)
+                + SH_C2_1 * y * z * sh_coefficient(gauss_sh, gauss_sh_rest, i, 5)
+                + SH_C2_2 * (2.0 * zz - xx - yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 6)
+                + SH_C2_3 * x * z * sh_coefficient(gauss_sh, gauss_sh_rest, i, 7)
+                + SH_C2_4 * (xx - yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 8)
             )
             if sh_degree > 2:
                 color = (
                     color
-                    + SH_C3_0 * y * (3.0 * xx - yy) * gauss_sh[i, 9]
-                    + SH_C3_1 * x * y * z * gauss_sh[i, 10]
-                    + SH_C3_2 * y * (4.0 * zz - xx - yy) * gauss_sh[i, 11]
-                    + SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * gauss_sh[i, 12]
-                    + SH_C3_4 * x * (4.0 * zz - xx - yy) * gauss_sh[i, 13]
-                    + SH_C3_5 * z * (xx - yy) * gauss_sh[i, 14]
-                    + SH_C3_6 * x * (xx - 3.0 * yy) * gauss_sh[i, 15]
+                    + SH_C3_0 * y * (3.0 * xx - yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 9)
+                    + SH_C3_1 * x * y * z * sh_coefficient(gauss_sh, gauss_sh_rest, i, 10)
+                    + SH_C3_2 * y * (4.0 * zz - xx - yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 11)
+                    + SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 12)
+                    + SH_C3_4 * x * (4.0 * zz - xx - yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 13)
+                    + SH_C3_5 * z * (xx - yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 14)
+                    + SH_C3_6 * x * (xx - 3.0 * yy) * sh_coefficient(gauss_sh, gauss_sh_rest, i, 15)
                 )
     color = color + wp.vec3(0.5, 0.5, 0.5)
     if nonfinite_out.shape[0] > 0:
@@ -392,6 +430,7 @@ def clamp_gradient(color: wp.vec3, grad: wp.vec3):
 def sh_to_color_backward_kernel(
     gauss_means: wp.array(dtype=wp.vec3),
     gauss_sh: wp.array2d(dtype=wp.vec3),
+    gauss_sh_rest: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
     radii: wp.array(dtype=wp.vec2i),
@@ -399,17 +438,18 @@ def sh_to_color_backward_kernel(
     grad_colors: wp.array(dtype=wp.vec3),
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
+    grad_sh_rest_out: wp.array2d(dtype=wp.vec3),
 ):
     """Adjoint of ``sh_to_color_kernel``, written out: each thread owns its Gaussian's gradients, so
     they are plain stores (every entry written, coefficients above the degree and culled Gaussians
     get 0), no atomics. ``colors`` is the forward output: colour = max(raw, 0) passes the gradient
     where it is positive."""
     i = wp.tid()
-    stored = gauss_sh.shape[1]
+    stored = sh_stored(gauss_sh, gauss_sh_rest)
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:
             for j in range(stored):
-                grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
+                store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
             grad_means_out[i] = wp.vec3(0.0, 0.0, 0.0)
             return
     v = gauss_means[i] - camera_center
@@ -422,12 +462,12 @@ def sh_to_color_backward_kernel(
     w = sh_vector()
     for j in range(MAX_SH_COEFFICIENTS):
         if j < count:
-            grad_sh_out[i, j] = basis[j] * g
-            w[j] = wp.dot(gauss_sh[i, j], g)
+            store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, basis[j] * g)
+            w[j] = wp.dot(sh_coefficient(gauss_sh, gauss_sh_rest, i, j), g)
         elif j < stored:
-            grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
+            store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
     for j in range(MAX_SH_COEFFICIENTS, stored):
-        grad_sh_out[i, j] = wp.vec3(0.0, 0.0, 0.0)
+        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
     grad_mean = wp.vec3(0.0, 0.0, 0.0)
     if sh_degree > 0:
         grad_d = sh_basis_vjp(d, w, sh_degree)
@@ -458,6 +498,7 @@ def pick_sh(v: sh_vector, j: int):
 def sh_to_color_grouped_backward_kernel(
     gauss_means: wp.array(dtype=wp.vec3),
     gauss_sh: wp.array2d(dtype=wp.vec3),
+    gauss_sh_rest: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
     radii: wp.array(dtype=wp.vec2i),
@@ -465,17 +506,18 @@ def sh_to_color_grouped_backward_kernel(
     grad_colors: wp.array(dtype=wp.vec3),
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
+    grad_sh_rest_out: wp.array2d(dtype=wp.vec3),
 ):
     """``sh_to_color_backward_kernel`` with one thread per coefficient (dim MAX_SH_COEFFICIENTS * N = 16 N, CUDA only)."""
     t = wp.tid()
     i = t // MAX_SH_COEFFICIENTS
     j = t - i * MAX_SH_COEFFICIENTS
-    stored = gauss_sh.shape[1]
+    stored = sh_stored(gauss_sh, gauss_sh_rest)
     zero = wp.vec3(0.0, 0.0, 0.0)
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:  # the whole half warp leaves together
             for k in range(j, stored, MAX_SH_COEFFICIENTS):
-                grad_sh_out[i, k] = zero
+                store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, k, zero)
             if j == 0:
                 grad_means_out[i] = zero
             return
@@ -485,12 +527,12 @@ def sh_to_color_grouped_backward_kernel(
     b = pick_sh(sh_basis(d, sh_degree), j)
     coefficient = zero
     if j < count:
-        coefficient = gauss_sh[i, j]
+        coefficient = sh_coefficient(gauss_sh, gauss_sh_rest, i, j)
     g = clamp_gradient(colors[i], grad_colors[i])
     if j < stored:
-        grad_sh_out[i, j] = wp.where(j < count, b * g, zero)
+        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.where(j < count, b * g, zero))
     for k in range(j + MAX_SH_COEFFICIENTS, stored, MAX_SH_COEFFICIENTS):
-        grad_sh_out[i, k] = zero
+        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, k, zero)
     # every lane gathers the group's weights dot(coefficient, g); lane 0 writes the mean's gradient
     w_j = wp.dot(coefficient, g)
     w = sh_vector()

@@ -83,14 +83,16 @@ class GaussianModel:
     def render_args(self) -> dict:
         """Keyword arguments of :func:`cdcgs.rasterize` for the current state (differentiable).
 
-        Every coefficient goes to the render, which evaluates those of ``sh_degree`` (a slice to
-        the degree would cost a copy of the coefficients each iteration until degree 3)."""
+        The two coefficient tensors go to the render as they are (``sh`` and ``sh_rest``), which
+        evaluates those of ``sh_degree``: concatenating them, or slicing to the degree, would copy
+        every coefficient each iteration (and their gradients back)."""
         return dict(
             means=self.params["means"],
             quats=self.params["quats"],
             scales=self.scales(),
             opacities=self.opacities(),
-            sh=self.sh(),
+            sh=self.params["sh_dc"],
+            sh_rest=self.params["sh_rest"],
             sh_degree=self.sh_degree,
         )
 

@@ -39,6 +39,10 @@ class Snapshot:
         """Copies of a :class:`~cdcgs.train.model.GaussianModel`'s current state (no autograd)."""
         with torch.no_grad():
             args = model.render_args()
+            rest = args.pop("sh_rest", None)
+            if rest is not None:  # one coefficient tensor, truncated to the degree (a copy anyway)
+                count = (args["sh_degree"] + 1) ** 2
+                args["sh"] = torch.cat([args["sh"], rest], dim=1)[:, :count]
             return cls(**{k: v.detach().clone() if torch.is_tensor(v) else v for k, v in args.items()}, step=step)
 
     @property
