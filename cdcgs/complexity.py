@@ -91,7 +91,8 @@ def gaussian_complexity(
     *,
     w_max: str = "alpha",
     racy_seed: int | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    sums: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """(max [N], sum [N], count [N] int32) over one render's pixels of HF * w / w_max per Gaussian.
 
     ``info`` is the RasterizeInfo of the render; ``hf_map`` its view's [H, W] uint8 map.
@@ -99,7 +100,8 @@ def gaussian_complexity(
     CDC-GS code), or "weight", the largest alpha * T (the paper's formula). ``racy_seed``: emulate
     the CDC-GS code's racy per-Gaussian max (one pseudo-random contributing pixel per tile and
     Gaussian instead of the largest; the seed picks which) for the max; None: exact.
-    Gaussians that composite no pixel get max 0 and count 0.
+    Gaussians that composite no pixel get max 0 and count 0. ``sums`` False: the max alone (sum
+    and count are None), for the max aggregations, which do not need the kernel's sums.
     """
     if hf_map.shape != (info.height, info.width) or hf_map.dtype != torch.uint8:
         raise ValueError(
@@ -111,8 +113,8 @@ def gaussian_complexity(
     device = info.means2d.device
     opacities = info.opacities if opacities is None else opacities
     max_out = torch.zeros(n, device=device)
-    sum_out = torch.zeros(n, device=device)
-    count_out = torch.zeros(n, dtype=torch.int32, device=device)
+    sum_out = torch.zeros(n if sums else 1, device=device)
+    count_out = torch.zeros(n if sums else 1, dtype=torch.int32, device=device)
     racy = racy_seed is not None
     keys = torch.full((info.sorted_gauss_ids.numel() if racy else 1,), -1, dtype=torch.int32, device=device)
     tiles_y, tiles_x = info.tiles_y, info.tiles_x
@@ -137,11 +139,11 @@ def gaussian_complexity(
             wp.launch(
                 complexity_kernel,
                 tiles_x * tiles_y * BLOCK_SIZE,
-                inputs=[*inputs, max_rule, seed, wp_array(keys, wp.int32)],
+                inputs=[*inputs, max_rule, seed, int(sums), wp_array(keys, wp.int32)],
                 outputs=outputs,
                 block_dim=BLOCK_SIZE,
             )
-    return max_out, sum_out, count_out
+    return (max_out, sum_out, count_out) if sums else (max_out, None, None)
 
 
 class ComplexityMaps:
@@ -223,7 +225,8 @@ class ViewComplexity:
     def add(self, info, hf_map: torch.Tensor) -> None:
         """Add one render (its RasterizeInfo) of a view with complexity map ``hf_map``."""
         racy_seed = self.views_added if self.racy_max else None
-        max_out, sum_out, count = gaussian_complexity(info, hf_map, w_max=self.w_max, racy_seed=racy_seed)
+        sums = self.pixel_aggregation == "mean" or self.view_aggregation == "mean"
+        max_out, sum_out, count = gaussian_complexity(info, hf_map, w_max=self.w_max, racy_seed=racy_seed, sums=sums)
         self.views_added += 1
         per_view = max_out if self.pixel_aggregation == "max" else sum_out / count.clamp_min(1)
         if self.view_aggregation == "max":

@@ -82,18 +82,26 @@ def tile_list_alpha_max(scene, info, width, height) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("w_max", ["weight", "alpha"])
-@pytest.mark.parametrize("seed", [21, 22])
-def test_gaussian_complexity_matches_dense_reference(device, seed, w_max):
-    scene = make_scene(300, 61, 37, sh_degree=0, seed=seed)
+@pytest.mark.parametrize(
+    "seed, n, width, height",
+    [(21, 300, 61, 37), (22, 300, 61, 37), (23, 1400, 40, 27)],  # the last: tile lists of several batches
+)
+def test_gaussian_complexity_matches_dense_reference(device, seed, n, width, height, w_max):
+    scene = make_scene(n, width, height, sh_degree=0, seed=seed)
+    if n > 1000:  # faint, so that pixels stay transparent through long lists
+        scene.opacities = scene.opacities * 0.04
     _, _, info = cdcgs.rasterize(
-        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=61, height=37
+        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=width, height=height
     )
+    if n > 1000:
+        lengths = info.tile_ranges[:, 1] - info.tile_ranges[:, 0]
+        assert (lengths > 2 * 256).any(), "some tile list spans three batches"
     g = torch.Generator().manual_seed(seed)
-    hf_map = (torch.rand(37, 61, generator=g) * 255).to(torch.uint8)
+    hf_map = (torch.rand(height, width, generator=g) * 255).to(torch.uint8)
     max_out, sum_out, count = gaussian_complexity(info, hf_map.to(device), w_max=w_max)
     d = [t.double() for t in scene.tensors()]
-    *_, weights = reference.render(*d, viewmat=scene.viewmat.double(), K=scene.K.double(), width=61, height=37)
-    pixel_w_max = tile_list_alpha_max(scene, info, 61, 37) if w_max == "alpha" else None
+    *_, weights = reference.render(*d, viewmat=scene.viewmat.double(), K=scene.K.double(), width=width, height=height)
+    pixel_w_max = tile_list_alpha_max(scene, info, width, height) if w_max == "alpha" else None
     ref_max, ref_sum, ref_count, _ = dense_complexity(weights, hf_map.double() / 255.0, pixel_w_max)
     assert (ref_count > 0).sum() > 20
     torch.testing.assert_close(count.cpu().long(), ref_count)
@@ -101,6 +109,9 @@ def test_gaussian_complexity_matches_dense_reference(device, seed, w_max):
     torch.testing.assert_close(sum_out.cpu().double(), ref_sum, atol=1e-4, rtol=1e-4)
     if w_max == "alpha":  # the largest alpha over the tile list is at least the largest alpha * T
         assert (ref_max <= dense_complexity(weights, hf_map.double() / 255.0)[0] + 1e-12).all()
+    alone, no_sum, no_count = gaussian_complexity(info, hf_map.to(device), w_max=w_max, sums=False)
+    assert no_sum is None and no_count is None
+    torch.testing.assert_close(alone, max_out, atol=0, rtol=0)
 
 
 def test_racy_max_keeps_one_pixel_per_tile(device):

@@ -418,6 +418,44 @@ def racy_key(seed: int, g: int, local: int):
     return (wp.randi(state) & 0x7FFFFF) * BLOCK_SIZE + local
 
 
+@wp.func
+def stage_shape(
+    slot: int,
+    g: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+):
+    """Copy fields 0 and 1 of Gaussian ``g`` (all the complexity pass reads) into ``slot`` of the
+    block's shared batch (CUDA)."""
+    tile_ids(BATCH_STORE, slot, g)
+    m = means2d[g]
+    q = conics[g]
+    tile_batch(BATCH_STORE, slot, wp.vec4(m[0], m[1], q[0], q[1]))
+    tile_batch(BATCH_STORE, BLOCK_SIZE + slot, wp.vec4(q[2], opacities[g], 0.0, 0.0))
+
+
+@wp.func
+def shape_of(
+    staged: int,
+    field: int,
+    slot: int,
+    g: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+):
+    """Field 0 or 1 (``gaussian_field``) of the Gaussian in ``slot`` of the staged batch (CUDA), or of
+    Gaussian ``g`` read from global memory (CPU)."""
+    if staged != 0:
+        return tile_batch(BATCH_LOAD, field * BLOCK_SIZE + slot, wp.vec4())
+    if field == 0:
+        m = means2d[g]
+        q = conics[g]
+        return wp.vec4(m[0], m[1], q[0], q[1])
+    return wp.vec4(conics[g][2], opacities[g], 0.0, 0.0)
+
+
 @wp.kernel(enable_backward=False)
 def complexity_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
@@ -433,6 +471,7 @@ def complexity_kernel(
     w_max_rule: int,
     max_rule: int,
     seed: int,
+    sums: int,
     keys: wp.array(dtype=wp.int32),
     max_out: wp.array(dtype=float),
     sum_out: wp.array(dtype=float),
@@ -442,14 +481,18 @@ def complexity_kernel(
     composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
 
     Two passes over each pixel's list, in compositing order up to its last contributor (the same
-    alpha and transmittance rules as the forward blend): the first finds w_max (``w_max_rule``:
-    W_MAX_WEIGHT the largest alpha * T, W_MAX_ALPHA the largest alpha over the whole tile list,
-    both floored at 1e-4), the second combines the warp's contributions per Gaussian in registers
-    (max, sum, count) and adds them with an exact atomic max and atomic sums (the sums serve the
-    mean aggregation). ``max_rule`` MAX_RACY_RANK writes, per entry of the tile lists, the largest
-    ``racy_key`` (with ``seed``) of the pixels that composite it into ``keys`` (as long as
-    ``sorted_gauss_ids``, filled with -1) and nothing else; MAX_RACY_KEEP then takes into
-    ``max_out`` only those pixels' values (sums and counts stay exact).
+    alpha and transmittance rules as the forward blend), in batches of BLOCK_SIZE that the block
+    stages in shared memory on CUDA (as the forward blend does). The first finds w_max
+    (``w_max_rule``: W_MAX_WEIGHT the largest alpha * T, W_MAX_ALPHA the largest alpha over the
+    whole tile list, both floored at 1e-4); a pixel leaves it once no later Gaussian can raise
+    w_max (alpha <= MAX_ALPHA * T), and under W_MAX_ALPHA skips a Gaussian whose opacity does
+    not exceed w_max (alpha <= opacity): both exact. The second combines the warp's contributions
+    per Gaussian in registers and adds them with an exact atomic max, and with ``sums`` non-zero
+    atomic sums and counts too (the mean aggregations read them; with ``sums`` 0 ``sum_out``
+    and ``count_out`` are left untouched). ``max_rule`` MAX_RACY_RANK writes, per entry of the
+    tile lists, the largest ``racy_key`` (with ``seed``) of the pixels that composite it into
+    ``keys`` (as long as ``sorted_gauss_ids``, filled with -1) and nothing else; MAX_RACY_KEEP
+    then takes into ``max_out`` only those pixels' values (sums and counts stay exact).
     ``complexity_map`` holds HF in [0, 1] as uint8 (x 255).
     """
     tid = wp.tid()
@@ -460,59 +503,114 @@ def complexity_kernel(
     px = float(x) + 0.5
     py = float(y) + 0.5
     start = tile_ranges[pix[2], 0]
+    end = tile_ranges[pix[2], 1]
+    staged = on_cuda()
     hf = float(0.0)
-    last = start - 1  # pixels outside the image take part in the warp's collectives with nothing to add
-    first_pass_end = start - 1
+    last = start - 1  # pixels outside the image only help load batches and take part in the warp's collectives
+    first_end = start
     if x < width and y < height:
         hf = float(complexity_map[y, x]) / 255.0
         last = last_contributor[y, x]
-        first_pass_end = last
+        first_end = last + 1
         if w_max_rule == W_MAX_ALPHA:
-            first_pass_end = tile_ranges[pix[2], 1] - 1
+            first_end = end
+
+    # First pass: w_max.
     w_max = float(1.0e-4)
-    transmittance = float(1.0)
-    for k in range(start, first_pass_end + 1):
-        g = sorted_gauss_ids[k]
-        alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
-        if alpha == 0.0:
-            continue
-        if w_max_rule == W_MAX_ALPHA:
-            w_max = wp.max(w_max, alpha)
-        else:
-            w_max = wp.max(w_max, alpha * transmittance)
-            transmittance = transmittance * (1.0 - alpha)
+    transmittance = float(1.0)  # stays 1 under W_MAX_ALPHA
+    batch = start
+    while batch < end:
+        count = wp.min(BLOCK_SIZE, end - batch)
+        done = int(0)
+        if batch >= first_end or MAX_ALPHA * transmittance <= w_max:
+            done = 1
+        if staged != 0:
+            if block_count(done) >= BLOCK_SIZE:
+                break
+            if local < count:
+                stage_shape(local, sorted_gauss_ids[batch + local], means2d, conics, opacities)
+            block_sync()
+        if done == 0:
+            for j in range(wp.min(count, first_end - batch)):
+                g = int(0)
+                if staged == 0:
+                    g = sorted_gauss_ids[batch + j]
+                extra = shape_of(staged, 1, j, g, means2d, conics, opacities)
+                if w_max_rule == W_MAX_ALPHA and extra[1] <= w_max:
+                    continue
+                alpha = shape_alpha(shape_of(staged, 0, j, g, means2d, conics, opacities), extra, px, py)
+                if alpha == 0.0:
+                    continue
+                if w_max_rule == W_MAX_ALPHA:
+                    w_max = wp.max(w_max, alpha)
+                else:
+                    w_max = wp.max(w_max, alpha * transmittance)
+                    transmittance = transmittance * (1.0 - alpha)
+                if MAX_ALPHA * transmittance <= w_max:
+                    break
+        if staged != 0:
+            block_sync()  # the batch is read before the next one overwrites it
+        elif done != 0:
+            break
+        batch += BLOCK_SIZE
+
     # Second pass: the warp's lanes walk the list together so that each Gaussian's max, sum and
     # count are combined in registers and reach global memory once per warp.
     transmittance = float(1.0)
     warp_last = lane_max_int(last)
-    for k in range(start, warp_last + 1):
-        g = sorted_gauss_ids[k]
-        alpha = float(0.0)
-        if k <= last:
-            alpha = splat_alpha(means2d[g], conics[g], opacities[g], px, py)
-        value = float(0.0)
-        valid = int(0)
-        if alpha > 0.0:
-            value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
-            valid = 1
-            transmittance = transmittance * (1.0 - alpha)
-        if lane_any(valid) != 0:
-            if max_rule == MAX_RACY_RANK:
-                key = int(-1)
-                if valid != 0:
-                    key = racy_key(seed, g, local)
-                top_key = lane_max_int(key)
-                if lane_leads() != 0:
-                    wp.atomic_max(keys, k, top_key)
+    batch = start
+    while batch < end:
+        count = wp.min(BLOCK_SIZE, end - batch)
+        if staged != 0:
+            finished = int(0)
+            if batch > last:
+                finished = 1
+            if block_count(finished) >= BLOCK_SIZE:
+                break
+            if local < count:
+                stage_shape(local, sorted_gauss_ids[batch + local], means2d, conics, opacities)
+            block_sync()
+        for j in range(wp.min(count, warp_last + 1 - batch)):  # the same for the warp's lanes
+            k = batch + j
+            g = int(0)
+            if staged != 0:
+                g = tile_ids(BATCH_LOAD, j, 0)
             else:
-                kept = value
-                if max_rule == MAX_RACY_KEEP:
-                    if valid == 0 or racy_key(seed, g, local) != keys[k]:
-                        kept = 0.0
-                top = lane_max(kept)
-                total = lane_sum(value)
-                count = lane_sum(float(valid))
-                if lane_leads() != 0:
-                    wp.atomic_max(max_out, g, top)
-                    wp.atomic_add(sum_out, g, total)
-                    wp.atomic_add(count_out, g, int(count))
+                g = sorted_gauss_ids[k]
+            alpha = float(0.0)
+            if k <= last:
+                shape = shape_of(staged, 0, j, g, means2d, conics, opacities)
+                alpha = shape_alpha(shape, shape_of(staged, 1, j, g, means2d, conics, opacities), px, py)
+            value = float(0.0)
+            valid = int(0)
+            if alpha > 0.0:
+                value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
+                valid = 1
+                transmittance = transmittance * (1.0 - alpha)
+            if lane_any(valid) != 0:
+                if max_rule == MAX_RACY_RANK:
+                    key = int(-1)
+                    if valid != 0:
+                        key = racy_key(seed, g, local)
+                    top_key = lane_max_int(key)
+                    if lane_leads() != 0:
+                        wp.atomic_max(keys, k, top_key)
+                else:
+                    kept = value
+                    if max_rule == MAX_RACY_KEEP:
+                        if valid == 0 or racy_key(seed, g, local) != keys[k]:
+                            kept = 0.0
+                    top = lane_max(kept)
+                    if sums != 0:
+                        total = lane_sum(value)
+                        hits = lane_sum(float(valid))
+                        if lane_leads() != 0:
+                            wp.atomic_add(sum_out, g, total)
+                            wp.atomic_add(count_out, g, int(hits))
+                    if lane_leads() != 0:
+                        wp.atomic_max(max_out, g, top)
+        if staged != 0:
+            block_sync()
+        elif batch + count > warp_last:
+            break
+        batch += BLOCK_SIZE
