@@ -380,7 +380,12 @@ def test_sh_in_two_tensors_renders_and_differentiates_as_one(device, degree):
     (image_two * weights).sum().backward()
     (image_one * weights).sum().backward()
     assert torch.equal(image_two, image_one)
-    torch.testing.assert_close(torch.cat([dc.grad, rest.grad], dim=1), joined.grad, rtol=0, atol=0)
+    # On the CPU the same sums in the same order: bit-exact. On CUDA the gradients are sums of
+    # float atomics whose order varies from run to run (an ulp or so apart).
+    exact = device == "cpu"
+    torch.testing.assert_close(
+        torch.cat([dc.grad, rest.grad], dim=1), joined.grad, rtol=0 if exact else 1e-5, atol=0 if exact else 1e-6
+    )
     assert (joined.grad[:, (degree + 1) ** 2 :] == 0).all() and joined.grad[:, 0].abs().max() > 0
     with pytest.raises(ValueError, match=r"sh must have shape \[150, 1, 3\], got \[150, 16, 3\]"):
         cdcgs.rasterize(means, quats, scales, opacities, sh, sh_rest=rest, **camera)
