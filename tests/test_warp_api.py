@@ -33,6 +33,7 @@ PUBLIC_KERNEL_API = {
     "ssim_l1_forward_kernel",
     "ssim_l1_backward_kernel",
     "ssim_l1_launch_size",
+    "selective_adam_kernel",
 }
 
 

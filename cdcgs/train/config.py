@@ -14,6 +14,7 @@ from .presets import PRESETS, canonical_name
 
 __all__ = [
     "BACKGROUNDS",
+    "OPTIMIZERS",
     "DataConfig",
     "LearningRates",
     "TrainConfig",
@@ -26,6 +27,7 @@ __all__ = [
 
 BACKGROUNDS = ("black", "white", "random")
 SCALE_RULES = ("3dgs", "cdc")
+OPTIMIZERS = ("adam", "selective")
 
 
 def option(
@@ -155,6 +157,11 @@ class TrainConfig:
     fused_loss: bool = option(
         True,
         "the loss as one Warp kernel forward and one backward (off: kornia's SSIM and torch's L1, the same loss in about 60 torch kernels)",
+    )
+    optimizer: str = option(
+        "adam",
+        "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; faster, not exact)",
+        choices=OPTIMIZERS,
     )
     lr: LearningRates = field(default_factory=LearningRates, metadata={"help": "learning rates"})
     eval_every: int = option(

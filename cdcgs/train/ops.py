@@ -16,15 +16,22 @@ import torch
 from ..geometry import quat_to_rotation
 from .config import LearningRates
 from .model import PARAM_NAMES, GaussianModel
+from .optim import SelectiveAdam
 
 __all__ = ["append", "clone", "make_optimizer", "relocate", "remove", "reset_opacity", "split"]
 
 
-def make_optimizer(model: GaussianModel, lrs: LearningRates, extent: float) -> torch.optim.Adam:
+def make_optimizer(
+    model: GaussianModel, lrs: LearningRates, extent: float, kind: str = "adam"
+) -> torch.optim.Adam | SelectiveAdam:
     """One Adam parameter group per parameter, named, with the 3DGS rates (eps 1e-15 as 3DGS).
 
-    On CUDA the fused implementation (one kernel per group instead of a chain of foreach kernels).
+    ``kind`` "adam": torch's Adam, on CUDA the fused implementation (one kernel per group instead
+    of a chain of foreach kernels); "selective": :class:`cdcgs.train.optim.SelectiveAdam` (its
+    ``step`` takes the mask of the Gaussians to update).
     """
+    if kind not in ("adam", "selective"):
+        raise ValueError(f"optimizer must be adam or selective, got {kind!r}")
     rates = {
         "means": lrs.means_init * extent,
         "log_scales": lrs.log_scales,
@@ -34,6 +41,8 @@ def make_optimizer(model: GaussianModel, lrs: LearningRates, extent: float) -> t
         "sh_rest": lrs.sh_rest,
     }
     groups = [{"params": [model.params[name]], "lr": rates[name], "name": name} for name in PARAM_NAMES]
+    if kind == "selective":
+        return SelectiveAdam(groups, lr=0.0, eps=1e-15)
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=model.device.type == "cuda")
 
 

@@ -172,7 +172,7 @@ class Trainer:
                 scale_factor=config.init_scale,
                 device=self.device,
             )
-            self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent)
+            self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
             self.strategy_state = self.strategy.initialize_state(self.model)
             self.step = 0
             self.view_queue: list[int] = []
@@ -181,7 +181,7 @@ class Trainer:
             self.guard = NumericGuard(self.device)
         else:
             self.model = GaussianModel.from_state_dict(resume_state["model"], device=self.device)
-            self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent)
+            self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
             self.optimizer.load_state_dict(resume_state["optimizer"])
             self.strategy_state = {
                 k: v.to(self.device) if torch.is_tensor(v) else v for k, v in resume_state["strategy_state"].items()
@@ -357,7 +357,10 @@ class Trainer:
         if self.strategy.refines_at(step):
             self.check_numbers()
         strategy_log = self.strategy.after_backward(ctx, self.strategy_state)
-        self.optimizer.step()
+        if config.optimizer == "selective":
+            self.optimizer.step(info.visible)  # the Gaussians this view sees
+        else:
+            self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.after_step(ctx, self.strategy_state)
         return strategy_log
