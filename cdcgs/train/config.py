@@ -15,6 +15,7 @@ from .presets import PRESETS, canonical_name
 __all__ = [
     "BACKGROUNDS",
     "OPTIMIZERS",
+    "RESOLUTION_SCHEDULES",
     "DataConfig",
     "LearningRates",
     "TrainConfig",
@@ -28,6 +29,7 @@ __all__ = [
 BACKGROUNDS = ("black", "white", "random")
 SCALE_RULES = ("3dgs", "cdc")
 OPTIMIZERS = ("adam", "selective")
+RESOLUTION_SCHEDULES = ("none", "dash")
 
 
 def option(
@@ -162,6 +164,11 @@ class TrainConfig:
         "adam",
         "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; faster, not exact)",
         choices=OPTIMIZERS,
+    )
+    resolution_schedule: str = option(
+        "none",
+        "none, or dash: DashGaussian's schedule, low resolution first, raised with the photos' frequency content until densification ends, and the position learning rate's decay held until half resolution",
+        choices=RESOLUTION_SCHEDULES,
     )
     lr: LearningRates = field(default_factory=LearningRates, metadata={"help": "learning rates"})
     eval_every: int = option(

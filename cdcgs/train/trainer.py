@@ -26,7 +26,7 @@ from .interrupt import Interrupted, StopSignals
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import make_optimizer
-from .schedules import position_lr
+from .schedules import dash_schedule, position_lr
 from .strategies import make_strategy
 from .strategy import StepContext
 
@@ -162,6 +162,8 @@ class Trainer:
         self.view_generator = torch.Generator().manual_seed(config.seed + 1)
         method = self.strategy.complexity_maps_method
         self.complexity_maps = ComplexityMaps(self.scene.train, method, self.device) if method else None
+        self.resolution = self._resolution_schedule()
+        self._scaled = {}  # (view index, downscale) -> (camera, target) of the resolution schedule
         if resume_state is None:
             self.model = GaussianModel.from_points(
                 self.scene.points,
@@ -230,10 +232,52 @@ class Trainer:
             return torch.rand(3, device=self.device, generator=self.generator)
         return self.background
 
-    def _render(self, view_index: int, background=None):
+    def _resolution_schedule(self):
+        """DashGaussian's resolution schedule over the training photos, or None."""
+        config = self.config
+        if config.resolution_schedule == "none":
+            return None
+        if self.complexity_maps is not None and getattr(self.strategy, "complexity_schedule", None) == "online":
+            raise OptionError(
+                "--resolution-schedule dash renders the training views at reduced sizes: it cannot be combined with "
+                "--complexity-schedule online, which measures complexity on those renders (use the full schedule)"
+            )
+        from ..io.views import load_images
+
+        missing = [view for view in self.scene.train if view.image is None]
+        if missing:
+            load_images(missing, device=self.device, progress=False)
+        until = min(getattr(self.strategy, "densify_until", config.iters), config.iters)
+        return dash_schedule([view.image for view in self.scene.train], until)
+
+    def _downscale(self, step: int) -> int:
+        """The resolution schedule's downscale at ``step``, re-read every 100 iterations (DashGaussian
+        changes it at densification steps)."""
+        return 1 if self.resolution is None else self.resolution.scale_at(step - step % 100)
+
+    def _scaled_view(self, view_index: int, scale: int):
+        """(camera, target) of a training view at 1/``scale`` of its size (floor), the photo
+        resampled with antialiased bilinear filtering as DashGaussian does; kept for reuse."""
+        key = (view_index, scale)
+        if key not in self._scaled:
+            if len(self._scaled) > 4 * len(self.scene.train):
+                self._scaled.clear()  # only the current and the next scale are wanted
+            view = self.scene.train[view_index]
+            height, width = view.height // scale, view.width // scale
+            K = torch.as_tensor(view.K, dtype=torch.float64).clone()
+            K[0] *= width / view.width
+            K[1] *= height / view.height
+            photo = view.image.permute(2, 0, 1)[None].float() / 255.0
+            target = torch.nn.functional.interpolate(photo, size=(height, width), mode="bilinear", antialias=True)
+            target = target[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+            self._scaled[key] = (prepare_camera(view.viewmat, K, width, height), target)
+        return self._scaled[key]
+
+    def _render(self, view_index: int, background=None, scale: int = 1):
+        camera = self.cameras[view_index] if scale == 1 else self._scaled_view(view_index, scale)[0]
         return rasterize(
             **self.model.render_args(),
-            camera=self.cameras[view_index],
+            camera=camera,
             background=self.background if background is None else background,
             antialiased=self.config.antialiased,
         )
@@ -315,24 +359,27 @@ class Trainer:
         step = self.step
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
-                group["lr"] = position_lr(step, config.iters, config.lr, self.scene.extent)
+                decay_from = 0 if self.resolution is None else self.resolution.decay_from()
+                group["lr"] = position_lr(step, config.iters, config.lr, self.scene.extent, decay_from)
         if step % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
             self.model.sh_degree += 1
         view_index = self._next_view()
         view = self.scene.train[view_index]
+        scale = self._downscale(step)
         try:
-            image, _, info = self._render(view_index, self._step_background())
+            image, _, info = self._render(view_index, self._step_background(), scale)
         except NonFiniteError as err:
             # The render checks the parameters it reads: the last update made them non-finite.
             self.step -= 1
             bad = [name for name, p in self.model.params.items() if not torch.isfinite(p).all()] or [err.name]
             cause = f"the update of iteration {self.step} made {', '.join(bad)} NaN or infinite"
             raise self.guard.diverged(self.step, self.optimizer, cause, self._last_good()) from None
+        photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
         if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
-            loss, mse = fused_photometric_loss(image, view.image, config.ssim_weight)
+            loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
             image_psnr = mse_to_psnr(mse)
         else:
-            target = view.image.float() / 255.0
+            target = photo.float() / 255.0 if photo.dtype == torch.uint8 else photo
             loss = photometric_loss(image, target, config.ssim_weight)
             image_psnr = psnr(image.detach(), target)
         ctx = StepContext(
