@@ -110,11 +110,24 @@ def test_relocation_moves_the_dead_onto_live_gaussians():
         for index in [s] + [t for t, src in zip((2, 5), sources) if src == s]:
             assert model.opacities()[index].item() == pytest.approx(o.item(), rel=1e-5)
             torch.testing.assert_close(model.scales()[index].detach().double(), scale[0], rtol=1e-5, atol=0)
-            for name in model.params:
-                assert moments(optimizer, name)["exp_avg"][index].abs().sum() == 0
+    for name in model.params:  # the sources' moments restart; the filled slots keep theirs (the MCMC code)
+        m = moments(optimizer, name)["exp_avg"].reshape(6, -1)[:, 0]
+        assert (m[sorted(copies)] == 0).all()
+        torch.testing.assert_close(m[[2, 5]], torch.tensor([3.0, 6.0]))
     untouched = [i for i in live if i not in copies]
     for name, p in model.params.items():
         torch.testing.assert_close(p[untouched].detach(), before[name][untouched])
+
+
+@pytest.mark.parametrize("reset", [False, True])
+def test_the_filled_slots_keep_or_restart_their_moments(reset):
+    model, optimizer = hand_model()  # Gaussian 5 (opacity 0.001) is dead
+    strategy = make_strategy("mcmc", {"target_gaussians": 6, "reset_target_moments": reset})
+    log = strategy.after_backward(context(model, optimizer, None, step=600, seed=3), strategy.initialize_state(model))
+    assert log["relocated"] == 1
+    for name in model.params:
+        slot = moments(optimizer, name)["exp_avg"].reshape(6, -1)[5, 0].item()
+        assert slot == (0.0 if reset else 6.0)
 
 
 def test_consistency_draws_enter_mcmc_as_relocations():

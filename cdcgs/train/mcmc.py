@@ -123,6 +123,10 @@ class MCMC(Consistency, StrategyOptions):
     )
     opacity_reg: float = strategy_option(0.01, "loss weight of the mean opacity (L1)", low=0.0)
     scale_reg: float = strategy_option(0.01, "loss weight of the mean scale (L1)", low=0.0)
+    reset_target_moments: bool = strategy_option(
+        False,
+        "zero the Adam moments of the dead Gaussians' slots that relocation fills (the 3DGS-MCMC code and gsplat zero only the sources')",
+    )
 
     def __post_init__(self):
         super().__post_init__()
@@ -220,7 +224,9 @@ class MCMC(Consistency, StrategyOptions):
         if rest > 0:
             drawn = torch.multinomial(opacity[alive_index], rest, replacement=True, generator=ctx.generator)
             sources = torch.cat([first, alive_index[drawn]])
-        ops.relocate(model, ctx.optimizer, targets, sources, self._copy(ctx, sources))
+        ops.relocate(
+            model, ctx.optimizer, targets, sources, self._copy(ctx, sources), restart_targets=self.reset_target_moments
+        )
         return log
 
     def grow(self, ctx: StepContext) -> dict:

@@ -137,12 +137,16 @@ def relocate(
     targets: torch.Tensor,
     sources: torch.Tensor,
     new_values: dict[str, torch.Tensor] | None = None,
+    *,
+    restart_targets: bool = True,
 ) -> None:
     """Move Gaussians in place: ``targets`` [M] (indices, e.g. dead Gaussians) take the parameters
     of ``sources`` [M] (indices), overridden per parameter by ``new_values`` (name -> [M, ...]
     pre-activation values, e.g. the opacity and scales that 3DGS-MCMC recomputes for the sources
     and their copies, which are then also written to ``sources``). The moments of every touched
-    Gaussian restart at zero; the count N does not change.
+    Gaussian restart at zero, or with ``restart_targets`` False only the sources' (the targets keep
+    the moments of the Gaussians they replace, as the 3DGS-MCMC code and gsplat leave them); the
+    count N does not change.
     """
     targets, sources = targets.long(), sources.long()
     if targets.shape != sources.shape or targets.dim() != 1:
@@ -153,7 +157,7 @@ def relocate(
     unknown = sorted(set(new_values) - set(PARAM_NAMES))
     if unknown:
         raise ValueError(f"relocate: no parameters {unknown}; the model has {list(PARAM_NAMES)}")
-    touched = torch.cat([targets, sources])
+    touched = torch.cat([targets, sources]) if restart_targets else sources
 
     def move(name, p):
         p = p.clone()
