@@ -83,16 +83,19 @@ def test_without_a_mask_it_is_torch_adam(device):
     "mask, message",
     [
         (torch.ones(9, dtype=torch.bool), r"selected must be a bool \[10\] mask .* got torch.bool \[9\]"),
-        (torch.ones(10), r"selected must be a bool \[10\] mask .* got torch.float32 \[10\]"),
+        (torch.ones(10), r"selected must be a bool \[9\] mask .* got torch.float32 \[10\]"),
     ],
 )
 def test_a_bad_mask_is_refused_and_nothing_moves(mask, message):
+    first = torch.randn(9, 2, requires_grad=True)  # a mask fits this group but not the next one
     p = torch.randn(10, 3, requires_grad=True)
-    before = p.detach().clone()
-    p.grad = torch.ones(10, 3)
+    before = [first.detach().clone(), p.detach().clone()]
+    first.grad, p.grad = torch.ones(9, 2), torch.ones(10, 3)
+    optimizer = SelectiveAdam([{"params": [first]}, {"params": [p]}], lr=0.1)
     with pytest.raises(ValueError, match=message):
-        SelectiveAdam([p], lr=0.1).step(mask)
-    assert torch.equal(p.detach(), before)
+        optimizer.step(mask)
+    assert torch.equal(first.detach(), before[0]) and torch.equal(p.detach(), before[1])
+    assert not optimizer.state, "no state was created either"
 
 
 def test_the_surgery_keeps_its_moments_in_step():

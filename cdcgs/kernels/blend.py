@@ -83,6 +83,23 @@ def splat_alpha(mean: wp.vec2, conic: wp.vec3, opacity: float, px: float, py: fl
 
 
 @wp.func
+def shape_field(
+    field: int,
+    g: int,
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+):
+    """Field 0 (mean x, mean y, conic a, conic b) or 1 (conic c, opacity, 0, 0) of Gaussian ``g``:
+    what decides whether it composites at a pixel."""
+    if field == 0:
+        m = means2d[g]
+        q = conics[g]
+        return wp.vec4(m[0], m[1], q[0], q[1])
+    return wp.vec4(conics[g][2], opacities[g], 0.0, 0.0)
+
+
+@wp.func
 def gaussian_field(
     field: int,
     g: int,
@@ -92,15 +109,10 @@ def gaussian_field(
     opacities: wp.array(dtype=float),
     depths: wp.array(dtype=float),
 ):
-    """Gaussian ``g`` packed as the blend passes read it: field 0 (mean x, mean y, conic a, conic b),
-    1 (conic c, opacity, 0, 0), 2 (colour r, g, b, depth). Fields 0 and 1 decide whether it
-    composites at a pixel, field 2 is read only where it does."""
-    if field == 0:
-        m = means2d[g]
-        q = conics[g]
-        return wp.vec4(m[0], m[1], q[0], q[1])
-    if field == 1:
-        return wp.vec4(conics[g][2], opacities[g], 0.0, 0.0)
+    """Gaussian ``g`` packed as the blend passes read it: fields 0 and 1 (``shape_field``), 2 (colour
+    r, g, b, depth), read only where it composites."""
+    if field < 2:
+        return shape_field(field, g, means2d, conics, opacities)
     c = colors[g]
     return wp.vec4(c[0], c[1], c[2], depths[g])
 
@@ -429,10 +441,8 @@ def stage_shape(
     """Copy fields 0 and 1 of Gaussian ``g`` (all the complexity pass reads) into ``slot`` of the
     block's shared batch (CUDA)."""
     tile_ids(BATCH_STORE, slot, g)
-    m = means2d[g]
-    q = conics[g]
-    tile_batch(BATCH_STORE, slot, wp.vec4(m[0], m[1], q[0], q[1]))
-    tile_batch(BATCH_STORE, BLOCK_SIZE + slot, wp.vec4(q[2], opacities[g], 0.0, 0.0))
+    for field in range(2):
+        tile_batch(BATCH_STORE, field * BLOCK_SIZE + slot, shape_field(field, g, means2d, conics, opacities))
 
 
 @wp.func
@@ -449,11 +459,7 @@ def shape_of(
     Gaussian ``g`` read from global memory (CPU)."""
     if staged != 0:
         return tile_batch(BATCH_LOAD, field * BLOCK_SIZE + slot, wp.vec4())
-    if field == 0:
-        m = means2d[g]
-        q = conics[g]
-        return wp.vec4(m[0], m[1], q[0], q[1])
-    return wp.vec4(conics[g][2], opacities[g], 0.0, 0.0)
+    return shape_field(field, g, means2d, conics, opacities)
 
 
 @wp.kernel(enable_backward=False)

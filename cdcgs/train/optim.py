@@ -38,55 +38,52 @@ class SelectiveAdam(torch.optim.Optimizer):
         if closure is not None:
             with torch.enable_grad():
                 loss = closure()
-        for group in self.param_groups:
+        updated = [(group, p) for group in self.param_groups for p in group["params"] if p.grad is not None]
+        for _, p in updated:  # every check before any update: a refused step changes nothing
+            if p.dtype != torch.float32 or not p.is_contiguous():
+                raise ValueError(f"SelectiveAdam updates contiguous float32 parameters, got {p.dtype} {list(p.shape)}")
+            if selected is not None and (selected.shape != (p.shape[0],) or selected.dtype != torch.bool):
+                raise ValueError(
+                    f"selected must be a bool [{p.shape[0]}] mask (one entry per row of the parameter), "
+                    f"got {selected.dtype} {list(selected.shape)}"
+                )
+        for group, p in updated:
             beta1, beta2 = group["betas"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                if p.dtype != torch.float32 or not p.is_contiguous():
-                    raise ValueError(
-                        f"SelectiveAdam updates contiguous float32 parameters, got {p.dtype} {list(p.shape)}"
-                    )
-                rows = p.shape[0]
-                if selected is None:
-                    mask = torch.ones(rows, dtype=torch.bool, device=p.device)
-                else:
-                    if selected.shape != (rows,) or selected.dtype != torch.bool:
-                        raise ValueError(
-                            f"selected must be a bool [{rows}] mask (one entry per row of the parameter), "
-                            f"got {selected.dtype} {list(selected.shape)}"
-                        )
-                    mask = selected.to(p.device).contiguous()
-                state = self.state[p]
-                if not state:
-                    state["step"] = torch.zeros((), dtype=torch.float32)
-                    state["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-                    state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-                if state["step"].device.type != "cpu":  # Adam's fused state (resume): the count on the host, once
-                    state["step"] = state["step"].cpu()
-                state["step"] += 1
-                t = float(state["step"])
-                grad = p.grad.contiguous()
-                width = p.numel() // rows if rows else 1
-                with warp_scope(p.device):
-                    wp.launch(
-                        selective_adam_kernel,
-                        dim=p.numel(),
-                        inputs=[
-                            wp_array(p.view(-1), wp.float32),
-                            wp_array(grad.view(-1), wp.float32),
-                            wp_array(state["exp_avg"].view(-1), wp.float32),
-                            wp_array(state["exp_avg_sq"].view(-1), wp.float32),
-                            wp_array(mask.view(torch.uint8), wp.uint8),
-                            width,
-                            float(group["lr"]),
-                            float(beta1),
-                            float(beta2),
-                            1.0 - beta1,
-                            1.0 - beta2,
-                            float(group["eps"]),
-                            1.0 - beta1**t,
-                            math.sqrt(1.0 - beta2**t),
-                        ],
-                    )
+            rows = p.shape[0]
+            if selected is None:
+                mask = torch.ones(rows, dtype=torch.bool, device=p.device)
+            else:
+                mask = selected.to(p.device).contiguous()
+            state = self.state[p]
+            if not state:
+                state["step"] = torch.zeros((), dtype=torch.float32)
+                state["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
+                state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
+            if state["step"].device.type != "cpu":  # Adam's fused state (resume): the count on the host, once
+                state["step"] = state["step"].cpu()
+            state["step"] += 1
+            t = float(state["step"])
+            grad = p.grad.contiguous()
+            width = p.numel() // rows if rows else 1
+            with warp_scope(p.device):
+                wp.launch(
+                    selective_adam_kernel,
+                    dim=p.numel(),
+                    inputs=[
+                        wp_array(p.view(-1), wp.float32),
+                        wp_array(grad.view(-1), wp.float32),
+                        wp_array(state["exp_avg"].view(-1), wp.float32),
+                        wp_array(state["exp_avg_sq"].view(-1), wp.float32),
+                        wp_array(mask.view(torch.uint8), wp.uint8),
+                        width,
+                        float(group["lr"]),
+                        float(beta1),
+                        float(beta2),
+                        1.0 - beta1,
+                        1.0 - beta2,
+                        float(group["eps"]),
+                        1.0 - beta1**t,
+                        math.sqrt(1.0 - beta2**t),
+                    ],
+                )
         return loss

@@ -163,7 +163,7 @@ class Trainer:
         method = self.strategy.complexity_maps_method
         self.complexity_maps = ComplexityMaps(self.scene.train, method, self.device) if method else None
         self.resolution = self._resolution_schedule()
-        self._scaled = {}  # (view index, downscale) -> (camera, target) of the resolution schedule
+        self._scaled = {}  # (view index, downscale) -> (camera, uint8 target) of the resolution schedule
         if resume_state is None:
             self.model = GaussianModel.from_points(
                 self.scene.points,
@@ -257,11 +257,12 @@ class Trainer:
 
     def _scaled_view(self, view_index: int, scale: int):
         """(camera, target) of a training view at 1/``scale`` of its size (floor), the photo
-        resampled with antialiased bilinear filtering as DashGaussian does; kept for reuse."""
+        resampled with antialiased bilinear filtering as DashGaussian does and kept as uint8 (as
+        photos are); kept for reuse while the scale holds (the views of one scale at a time)."""
         key = (view_index, scale)
         if key not in self._scaled:
-            if len(self._scaled) > 4 * len(self.scene.train):
-                self._scaled.clear()  # only the current and the next scale are wanted
+            if any(held != scale for _, held in self._scaled):
+                self._scaled.clear()
             view = self.scene.train[view_index]
             height, width = view.height // scale, view.width // scale
             K = torch.as_tensor(view.K, dtype=torch.float64).clone()
@@ -269,7 +270,7 @@ class Trainer:
             K[1] *= height / view.height
             photo = view.image.permute(2, 0, 1)[None].float() / 255.0
             target = torch.nn.functional.interpolate(photo, size=(height, width), mode="bilinear", antialias=True)
-            target = target[0].permute(1, 2, 0).clamp(0.0, 1.0).contiguous()
+            target = (target[0].permute(1, 2, 0).clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).contiguous()
             self._scaled[key] = (prepare_camera(view.viewmat, K, width, height), target)
         return self._scaled[key]
 
@@ -379,7 +380,7 @@ class Trainer:
             loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
             image_psnr = mse_to_psnr(mse)
         else:
-            target = photo.float() / 255.0 if photo.dtype == torch.uint8 else photo
+            target = photo.float() / 255.0
             loss = photometric_loss(image, target, config.ssim_weight)
             image_psnr = psnr(image.detach(), target)
         ctx = StepContext(
