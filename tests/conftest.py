@@ -15,10 +15,11 @@ sys.path.insert(0, os.path.dirname(__file__))
 def test_devices() -> list[str]:
     """``cpu`` always, ``cuda`` when both torch and Warp see a GPU.
 
-    CDCGS_TEST_DEVICES (e.g. "cuda") narrows the list, for machines whose Warp has no CPU
-    compiler.
+    CDCGS_TEST_DEVICES (e.g. "cuda") narrows the list. Where Warp has no CPU compiler (the GPU
+    image's Warp comes without it) ``cpu`` is left out, and :func:`pytest_collection_modifyitems`
+    skips the tests that run on the CPU only.
     """
-    devices = ["cpu"]
+    devices = ["cpu"] if wp.is_cpu_available() else []
     if torch.cuda.is_available() and wp.is_cuda_available():
         devices.append("cuda")
     wanted = os.environ.get("CDCGS_TEST_DEVICES")
@@ -28,6 +29,20 @@ def test_devices() -> list[str]:
 
 
 test_devices.__test__ = False  # a helper, not a test
+
+
+def pytest_collection_modifyitems(config, items):
+    """Without ``cpu`` among the test devices, the tests not given another device are skipped,
+    with the reason, instead of failing inside Warp's missing CPU compiler."""
+    if "cpu" in test_devices():
+        return
+    skip = pytest.mark.skip(
+        reason="a CPU test, and the CPU is not among the test devices (CDCGS_TEST_DEVICES, or Warp without its CPU compiler)"
+    )
+    for item in items:
+        params = getattr(getattr(item, "callspec", None), "params", {})
+        if params.get("device", "cpu") == "cpu":
+            item.add_marker(skip)
 
 
 @pytest.fixture(params=test_devices())

@@ -15,7 +15,7 @@ from cdcgs.train.ops import make_optimizer
 from cdcgs.train.strategy import StepContext
 from cdcgs.train.trainer import Trainer
 
-DEFAULT_DEVICE = test_devices()[0]  # cpu, unless CDCGS_TEST_DEVICES narrows it
+DEFAULT_DEVICE = (test_devices() or ["cpu"])[0]  # cpu, unless CDCGS_TEST_DEVICES narrows it
 SHORT = {"densify_from": 20, "densify_until": 120, "densify_every": 20, "reset_every": 100_000}
 
 

@@ -87,8 +87,8 @@ def test_delayed_decay_of_the_position_rate():
     )
 
 
-def test_training_renders_at_the_scheduled_sizes(tiny_scene, tmp_path):
-    config = tiny_config(tiny_scene, tmp_path, iters=30, resolution_schedule="dash")
+def test_training_renders_at_the_scheduled_sizes(tiny_scene, tmp_path, device):
+    config = tiny_config(tiny_scene, tmp_path, device, iters=30, resolution_schedule="dash")
     trainer = Trainer(config, {**SHORT, "densify_until": 250})
     trainer._setup()
     trainer.resolution = ResolutionSchedule(scales=(3.0, 1.0), begins=(0, 0, 200), until=250)
