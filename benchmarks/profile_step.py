@@ -52,7 +52,7 @@ PARTS = [
     "strategy before backward",
     "backward",
     "guard",
-    "strategy after backward",
+    "strategy observe",
     "optimizer step",
     "zero grad",
     "strategy after step",
@@ -116,7 +116,7 @@ def instrument(trainer: Trainer) -> None:
     strategy, optimizer, guard = trainer.strategy, trainer.optimizer, trainer.guard
     for name, label in (
         ("before_backward", "strategy before backward"),
-        ("after_backward", "strategy after backward"),
+        ("observe", "strategy observe"),
         ("after_step", "strategy after step"),
     ):
         object.__setattr__(strategy, name, labelled(label, getattr(strategy, name)))

@@ -167,21 +167,29 @@ def cmd_train(args) -> int:
     }
     make_strategy(config.strategy, options).check(config.iters)  # refuse bad options before the scene loads
     resolve_device(config.device)
+    # In a torchrun launch only rank 0 speaks and serves the viewer (docs/distributed.md).
+    main_rank = os.environ.get("RANK", "0") in ("", "0")
     callbacks = []
-    if args.view:
+    if args.view and main_rank:
         from .viewer import TrainingViewer, ViewerSettings, check_port_free
 
         settings = ViewerSettings(host=args.view_host, port=args.view_port, max_fps=10.0)
         check_port_free(settings.host, settings.port)  # before the scene loads, not after
         callbacks.append(TrainingViewer(settings))
+    from .train.distributed import RankDrift, RankFailed
+
     try:
         result = Trainer(config, options, callbacks=callbacks).run()
     except TrainingDiverged as err:
         print(f"cdcgs train: {err}", file=sys.stderr)
         return 3
+    except (RankFailed, RankDrift) as err:  # another process of a torchrun launch failed, or they differ
+        print(f"cdcgs train: {err}", file=sys.stderr)
+        return 4
     except KeyboardInterrupt as stop:  # SIGINT or SIGTERM: 128 + the signal's number, as a shell reports it
         return getattr(stop, "exit_status", 130)
-    _print_result(config.out, result)
+    if main_rank:
+        _print_result(config.out, result)
     return 0
 
 

@@ -241,14 +241,27 @@ class ViewComplexity:
 
 
 @torch.no_grad()
-def complexity_over_views(render, maps: ComplexityMaps, num_gaussians: int, device, **options) -> torch.Tensor:
+def complexity_over_views(
+    render, maps: ComplexityMaps, num_gaussians: int, device, ranks=None, **options
+) -> torch.Tensor:
     """[N] Γ over every view of ``maps``: ``render(i) -> (image, alpha, info)`` draws view ``i``.
 
-    ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max`` and ``racy_max`` of
-    :class:`ViewComplexity`.
+    ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
+    ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
+    of several processes): each renders the views ``rank``, ``rank + world``, ... and the
+    processes' sums or maxima are reduced, so every process gets the Γ of all views.
     """
     accumulator = ViewComplexity(num_gaussians, device, **options)
-    for index in range(len(maps)):
+    seed = accumulator.views_added
+    rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
+    for index in range(rank, len(maps), world):
         _, _, info = render(index)
+        accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
         accumulator.add(info, maps[index])
+    if world > 1:
+        if accumulator.view_aggregation == "max":
+            ranks.all_reduce_(accumulator.total, "max")
+        else:
+            ranks.all_reduce_(accumulator.total)
+            ranks.all_reduce_(accumulator.views_seen)
     return accumulator.result()

@@ -216,3 +216,28 @@ def test_evaluation_of_images_too_small_for_alexnet_scores_them_null(monkeypatch
     assert all(value > 0 for value in scores["lpips_vgg"])
     per_view = [{"lpips_vgg": v, "lpips_alex": a} for v, a in zip(scores["lpips_vgg"], scores["lpips_alex"])]
     assert metric.too_small(per_view) == ["LPIPS-alex: 1 image(s) smaller than its 31 x 31 pixels not scored"]
+
+
+def test_evaluation_batches_hold_at_most_the_pixel_budget(monkeypatch):
+    from cdcgs.train import evaluate
+
+    net = random_network("vgg").float()
+    batches = []
+
+    class Recorder:
+        min_size = net.min_size
+
+        def __call__(self, a, b):
+            batches.append(len(a))
+            return net(a, b)
+
+    metric = evaluate.LpipsMetric.__new__(evaluate.LpipsMetric)
+    metric.nets, metric.note = {"vgg": Recorder()}, None
+    monkeypatch.setattr(evaluate, "LPIPS_BATCH_PIXELS", 3 * 40 * 40)
+    images = [torch.rand(40, 40, 3) for _ in range(7)] + [torch.rand(80, 80, 3)]
+    targets = [x.flip(0) for x in images]
+    scores = metric.scores(images, targets)["lpips_vgg"]
+    assert batches == [3, 3, 1, 1], "three 40 x 40 images fit the budget; a larger image goes alone"
+    with torch.no_grad():
+        alone = [float(net(x.permute(2, 0, 1)[None], y.permute(2, 0, 1)[None])) for x, y in zip(images, targets)]
+    assert scores == pytest.approx(alone, rel=1e-5)

@@ -88,7 +88,7 @@ def test_delayed_decay_of_the_position_rate():
 
 
 def test_training_renders_at_the_scheduled_sizes(tiny_scene, tmp_path, device):
-    config = tiny_config(tiny_scene, tmp_path, device, iters=30, resolution_schedule="dash")
+    config = tiny_config(tiny_scene, tmp_path, device, iters=400, resolution_schedule="dash")
     trainer = Trainer(config, {**SHORT, "densify_until": 250})
     trainer._setup()
     trainer.resolution = ResolutionSchedule(scales=(3.0, 1.0), begins=(0, 0, 200), until=250)
@@ -97,7 +97,7 @@ def test_training_renders_at_the_scheduled_sizes(tiny_scene, tmp_path, device):
 
     def spy(*args, **kwargs):
         image, alpha, info = render(*args, **kwargs)
-        sizes.append((trainer.step, image.shape[0], image.shape[1]))
+        sizes.append((trainer.step + 1, image.shape[0], image.shape[1]))  # the iteration being rendered
         return image, alpha, info
 
     trainer._render = spy
@@ -121,7 +121,8 @@ def test_training_renders_at_the_scheduled_sizes(tiny_scene, tmp_path, device):
     seen = info_full.visible & info_small.visible
     torch.testing.assert_close(
         info_small.means2d[seen],
-        info_full.means2d[seen] * torch.tensor([target.shape[1] / view.width, target.shape[0] / view.height]),
+        info_full.means2d[seen]
+        * torch.tensor([target.shape[1] / view.width, target.shape[0] / view.height], device=info_full.means2d.device),
         rtol=1e-4,
         atol=1e-3,
     )

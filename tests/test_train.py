@@ -36,8 +36,9 @@ def test_without_lpips_weights_evaluation_reports_null_and_how_to_get_them(tiny_
 def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path, device):
     initial = Trainer(tiny_config(tiny_scene, tmp_path / "zero", device, iters=1), SHORT).run()["test"]["psnr"]
     result = Trainer(tiny_config(tiny_scene, tmp_path / "run", device, iters=250, eval_every=100), SHORT).run()
-    # Measured on this scene: about 19 dB after one step, about 27 dB after 250.
-    assert result["test"]["psnr"] > 24.0 and result["test"]["psnr"] > initial + 4.0
+    # Measured on this scene (CPU, seeds 0-12): about 19 dB after one step, 23.6-26.2 dB after 250
+    # (mean 24.9; the split's random offsets alone move it by a dB).
+    assert result["test"]["psnr"] > 23.0 and result["test"]["psnr"] > initial + 4.0
     assert result["num_gaussians"] > 1500, "densification must have added Gaussians"
     out = tmp_path / "run"
     names = sorted(os.listdir(out))

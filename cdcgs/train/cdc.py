@@ -194,6 +194,12 @@ class Consistency:
             }
         return {}
 
+    def consistency_statistics(self) -> dict:
+        """How the online schedule's running Γ combines across processes (:meth:`statistics`)."""
+        if self.needs_complexity and self.complexity_schedule == "online":
+            return {"gamma": "max" if self.view_aggregation == "max" else "sum", "gamma_views": "sum"}
+        return {}
+
     def accumulate_complexity(self, ctx: StepContext, state: dict) -> None:
         """Online schedule: add this iteration's render to the running Γ."""
         if self.needs_complexity and self.complexity_schedule == "online":
@@ -207,7 +213,9 @@ class Consistency:
         options = self._gamma_options(ctx.step)
         if self.complexity_schedule == "online":
             return ViewComplexity.from_state(state["gamma"], state["gamma_views"], **options).result()
-        return complexity_over_views(ctx.render, ctx.complexity_maps, ctx.model.num, ctx.model.device, **options)
+        return complexity_over_views(
+            ctx.render, ctx.complexity_maps, ctx.model.num, ctx.model.device, ranks=ctx.ranks, **options
+        )
 
     def measure(self, ctx: StepContext, state: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
         """(Γ [N], Ψ [N], their statistics when logged) of the Gaussians as they are now."""
@@ -302,10 +310,13 @@ class CDC(Consistency, ADC):
 
     # --- hooks --------------------------------------------------------------------------------
 
-    def after_backward(self, ctx: StepContext, state: dict) -> dict:
+    def statistics(self) -> dict:
+        return {**super().statistics(), **self.consistency_statistics()}
+
+    def observe(self, ctx: StepContext, state: dict) -> None:
         if self.accumulates_at(ctx.step):
             self.accumulate_complexity(ctx, state)
-        return super().after_backward(ctx, state)
+        super().observe(ctx, state)
 
     def densify_and_prune(self, ctx: StepContext, state: dict) -> dict:
         model = ctx.model

@@ -20,6 +20,7 @@ __all__ = [
     "LearningRates",
     "TrainConfig",
     "background_color",
+    "batch_rule",
     "config_from_dict",
     "config_to_dict",
     "option",
@@ -170,6 +171,38 @@ class TrainConfig:
         "none, or dash: DashGaussian's schedule, low resolution first, raised with the photos' frequency content until densification ends, and the position learning rate's decay held until half resolution",
         choices=RESOLUTION_SCHEDULES,
     )
+    batch_size: int = option(
+        1,
+        "training views per step, their gradients averaged (over all processes of a torchrun launch); the schedules count views, so B views per step take 1/B of the steps",
+        low=1,
+    )
+    batch_lr_scale: float | None = option(
+        None,
+        "factor on every learning rate at --batch-size B (none: sqrt(B), Grendel-GS's rule)",
+        low=0.0,
+        low_open=True,
+    )
+    batch_eps_scale: float | None = option(
+        None, "factor on Adam's eps at --batch-size B (none: 1/sqrt(B))", low=0.0, low_open=True
+    )
+    batch_beta_power: float | None = option(
+        None, "Adam's betas raised to this power at --batch-size B (none: B)", low=0.0, low_open=True
+    )
+    dist_backend: str = option(
+        "auto",
+        "torch.distributed backend of a torchrun launch: auto (nccl when every process has a GPU of its own, else gloo), nccl or gloo",
+        choices=("auto", "nccl", "gloo"),
+    )
+    dist_timeout: float = option(
+        600.0,
+        "seconds a process of a torchrun launch waits for the others in a collective before the run stops with an error",
+        low=1.0,
+    )
+    check_ranks_every: int = option(
+        1000,
+        "iterations between comparisons of the processes' parameters in a torchrun launch (0: never); a difference stops the run",
+        low=0,
+    )
     lr: LearningRates = field(default_factory=LearningRates, metadata={"help": "learning rates"})
     eval_every: int = option(
         7000, "evaluate on the test views every n iterations (and at the end; 0: only at the end)", low=0
@@ -192,6 +225,18 @@ class TrainConfig:
         check_values(self)
         if self.init_opacity == 1.0:  # its logit is infinite
             raise OptionError("--init-opacity must be in (0, 1), got 1.0")
+
+
+def batch_rule(config: TrainConfig) -> tuple[float, float, float]:
+    """(learning-rate factor, eps factor, beta power) of ``config``'s batch size: sqrt(B), 1/sqrt(B)
+    and B (Grendel-GS: B views per step as B steps of one view, to first order), each replaced by
+    its option when set."""
+    b = config.batch_size
+    return (
+        math.sqrt(b) if config.batch_lr_scale is None else config.batch_lr_scale,
+        1.0 / math.sqrt(b) if config.batch_eps_scale is None else config.batch_eps_scale,
+        float(b) if config.batch_beta_power is None else config.batch_beta_power,
+    )
 
 
 def resolve_defaults(config: TrainConfig, strategy, saved: dict | None = None) -> TrainConfig:

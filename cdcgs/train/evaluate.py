@@ -3,6 +3,7 @@ speed, and the pictures."""
 
 from __future__ import annotations
 
+import io
 import os
 import time
 
@@ -19,6 +20,10 @@ __all__ = ["LPIPS_NETS", "LpipsMetric", "describe_metrics", "error_triptych", "e
 
 LPIPS_NETS = ("vgg", "alex")  # VGG first: the paper's and INRIA's; AlexNet: gsplat's default
 LPIPS_BATCH = 8
+# Pixels per LPIPS batch: VGG's activations take about 0.9 GB per 800 x 533 image (measured on the
+# CPU), so eight such images made the evaluation's peak 14 GB on an H100 against 2.2 GB for the
+# training. Each batch holds at most this many pixels, and at least one image.
+LPIPS_BATCH_PIXELS = 1_000_000
 
 
 class LpipsMetric:
@@ -41,13 +46,20 @@ class LpipsMetric:
 
     def scores(self, images: list[torch.Tensor], targets: list[torch.Tensor]) -> dict[str, list[float | None]]:
         """{"lpips_vgg": [...], "lpips_alex": [...]} of [H, W, 3] image/target pairs in [0, 1], in
-        batches of images of one size, without autograd. An image smaller than a net takes (16 px
+        batches of images of one size (at most ``LPIPS_BATCH`` images and ``LPIPS_BATCH_PIXELS``
+        pixels), without autograd. An image smaller than a net takes (16 px
         for VGG, 31 px for AlexNet) gets None from it (:meth:`too_small` words the note)."""
         out = {f"lpips_{name}": [] for name in self.nets}
         start = 0
         while start < len(images):
             end = start + 1
-            while end < len(images) and end - start < LPIPS_BATCH and images[end].shape == images[start].shape:
+            pixels = images[start].shape[0] * images[start].shape[1]
+            while (
+                end < len(images)
+                and end - start < LPIPS_BATCH
+                and (end - start + 1) * pixels <= LPIPS_BATCH_PIXELS
+                and images[end].shape == images[start].shape
+            ):
                 end += 1
             a = torch.stack([x.clamp(0, 1).permute(2, 0, 1) for x in images[start:end]])
             b = torch.stack([x.permute(2, 0, 1) for x in targets[start:end]])
@@ -103,6 +115,7 @@ def evaluate(
     save_dir: str | None = None,
     render=None,
     lpips: LpipsMetric | None = None,
+    ranks=None,
 ) -> dict:
     """Metrics over ``views`` (means over views) and, with ``save_dir``, one triptych PNG per view.
 
@@ -113,9 +126,15 @@ def evaluate(
     Returns PSNR, SSIM, LPIPS-VGG and LPIPS-Alex (``lpips_vgg``, ``lpips_alex``: null when the
     network's weights are unavailable, with the reason in ``lpips_note``), each a mean over views
     and per view in ``per_view``; render frames per second; the number of Gaussians.
+
+    ``ranks`` (a :class:`cdcgs.train.distributed.Ranks` of several processes): each process
+    scores the views ``rank``, ``rank + world``, ...; every process gets all the metrics, in the
+    views' order, and only rank 0 writes the pictures (the others send theirs as PNG bytes).
     """
     if not views:
         return {"views": 0}
+    rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
+    all_views, views = views, views[rank::world]
     if render is None:
         cameras = {id(view): prepare_camera(view.viewmat, view.K, view.width, view.height) for view in views}
 
@@ -133,7 +152,8 @@ def evaluate(
                 entry[key] = value
         pending.clear()
 
-    if save_dir:
+    pictures = []  # (file name, PNG bytes) of this process's views, for rank 0 to write
+    if save_dir and rank == 0:
         os.makedirs(save_dir, exist_ok=True)
     for view in views:
         image, _, _ = render(model, view, background, antialiased)
@@ -146,7 +166,13 @@ def evaluate(
         if save_dir:
             from PIL import Image
 
-            Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, f"{view_stem(view.name)}.png"))
+            name = f"{view_stem(view.name)}.png"
+            if world == 1:
+                Image.fromarray(error_triptych(gt, image)).save(os.path.join(save_dir, name))
+            else:
+                buffer = io.BytesIO()
+                Image.fromarray(error_triptych(gt, image)).save(buffer, format="png")
+                pictures.append((name, buffer.getvalue()))
     score_pending()
     notes = lpips.too_small(per_view)
     # Render speed: every view once more, timed after the first pass warmed everything up.
@@ -158,6 +184,19 @@ def evaluate(
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     seconds = time.perf_counter() - start
+    if world > 1:
+        shares = ranks.all_gather_object((per_view, seconds, notes))
+        per_view = [None] * len(all_views)
+        for r, (entries, _, _) in enumerate(shares):
+            per_view[r::world] = entries
+        seconds = sum(share[1] for share in shares)
+        notes = sorted({note for share in shares for note in share[2]})
+        sent = ranks.gather_object(pictures)
+        if save_dir and rank == 0:
+            for name, data in (item for share in sent for item in share):
+                with open(os.path.join(save_dir, name), "wb") as f:
+                    f.write(data)
+        views = all_views
     metrics = {
         "views": len(views),
         "psnr": float(np.mean([v["psnr"] for v in per_view])),

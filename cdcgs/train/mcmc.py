@@ -159,11 +159,14 @@ class MCMC(Consistency, StrategyOptions):
         model = ctx.model
         return self.opacity_reg * model.opacities().mean() + self.scale_reg * model.scales().mean()
 
-    def after_backward(self, ctx: StepContext, state: dict) -> dict:
+    def statistics(self) -> dict:
+        return self.consistency_statistics()
+
+    def observe(self, ctx: StepContext, state: dict) -> None:
         if self.accumulates_at(ctx.step):
             self.accumulate_complexity(ctx, state)
-        if not self.refines_at(ctx.step):
-            return {}
+
+    def refine(self, ctx: StepContext, state: dict) -> dict:
         with torch.no_grad():
             log = self.relocate(ctx, state)
             log.update(self.grow(ctx))

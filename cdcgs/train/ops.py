@@ -18,20 +18,45 @@ from .config import LearningRates
 from .model import PARAM_NAMES, GaussianModel
 from .optim import SelectiveAdam
 
-__all__ = ["append", "clone", "make_optimizer", "relocate", "remove", "reset_opacity", "split"]
+__all__ = ["append", "clone", "make_optimizer", "relocate", "remove", "reset_opacity", "set_hyperparameters", "split"]
 
 
 def make_optimizer(
-    model: GaussianModel, lrs: LearningRates, extent: float, kind: str = "adam"
+    model: GaussianModel,
+    lrs: LearningRates,
+    extent: float,
+    kind: str = "adam",
+    batch_rule: tuple[float, float, float] = (1.0, 1.0, 1.0),
 ) -> torch.optim.Adam | SelectiveAdam:
     """One Adam parameter group per parameter, named, with the 3DGS rates (eps 1e-15 as 3DGS).
 
     ``kind`` "adam": torch's Adam, on CUDA the fused implementation (one kernel per group instead
     of a chain of foreach kernels); "selective": :class:`cdcgs.train.optim.SelectiveAdam` (its
-    ``step`` takes the mask of the Gaussians to update).
+    ``step`` takes the mask of the Gaussians to update). ``batch_rule``: (learning-rate factor,
+    eps factor, beta power) of a batch of views per step (:func:`cdcgs.train.config.batch_rule`).
     """
     if kind not in ("adam", "selective"):
         raise ValueError(f"optimizer must be adam or selective, got {kind!r}")
+    groups = [{"params": [model.params[name]], "name": name} for name in PARAM_NAMES]
+    if kind == "selective":
+        optimizer = SelectiveAdam(groups, lr=0.0, eps=1e-15)
+    else:
+        optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=model.device.type == "cuda")
+    set_hyperparameters(optimizer, lrs, extent, batch_rule)
+    return optimizer
+
+
+def set_hyperparameters(
+    optimizer: torch.optim.Optimizer,
+    lrs: LearningRates,
+    extent: float,
+    batch_rule: tuple[float, float, float] = (1.0, 1.0, 1.0),
+) -> None:
+    """Set every group's learning rate, eps and betas: the rates of ``lrs`` (positions x
+    ``extent``) times the batch rule's factor, eps 1e-15 times its eps factor, Adam's betas
+    (0.9, 0.999) to its power. A resumed run calls it after loading the optimizer's state, so the
+    command's options hold, not the checkpoint's."""
+    lr_scale, eps_scale, beta_power = batch_rule
     rates = {
         "means": lrs.means_init * extent,
         "log_scales": lrs.log_scales,
@@ -40,10 +65,11 @@ def make_optimizer(
         "sh_dc": lrs.sh_dc,
         "sh_rest": lrs.sh_rest,
     }
-    groups = [{"params": [model.params[name]], "lr": rates[name], "name": name} for name in PARAM_NAMES]
-    if kind == "selective":
-        return SelectiveAdam(groups, lr=0.0, eps=1e-15)
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=model.device.type == "cuda")
+    for group in optimizer.param_groups:
+        rate = rates[group["name"]]
+        group["lr"] = None if rate is None else rate * lr_scale  # None: left for the caller to set
+        group["eps"] = 1e-15 * eps_scale
+        group["betas"] = (0.9**beta_power, 0.999**beta_power)
 
 
 def _update(model: GaussianModel, optimizer: torch.optim.Optimizer, make_param, make_moment) -> None:

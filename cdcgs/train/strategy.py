@@ -42,39 +42,58 @@ class StepContext:
     total_steps: int
     model: GaussianModel
     optimizer: torch.optim.Optimizer
-    info: Any  # the RasterizeInfo of this iteration's render
-    view_index: int  # index of the rendered view in the training views
+    info: Any  # the RasterizeInfo of this iteration's render (None in ``refine``)
+    view_index: int | None  # index of the rendered view in the training views (None in ``refine``)
     extent: float
     generator: torch.Generator  # on the model's device: every random draw of a strategy uses it
     render: Callable | None = None  # render(view_index) -> (image, alpha, info) of a training view
     views: list | None = None  # the training views (with their images)
     complexity_maps: Any = None  # cdcgs.complexity.ComplexityMaps of the training views, owned by the run
+    ranks: Any = None  # cdcgs.train.distributed.Ranks of a run on several processes (None: one process)
 
 
 @runtime_checkable
 class Strategy(Protocol):
-    """The hooks the trainer calls, in this order within an iteration.
+    """The hooks the trainer calls, in this order within a step.
+
+    A step renders a batch of views (``--batch-size``, one by default; on several processes each
+    renders its share), one iteration per view, and then updates the Gaussians once. For each
+    view of the process, with ``ctx.step`` that view's iteration:
+
+    - ``before_backward(ctx, state)``: after the render, before ``loss.backward()`` (ask the
+      render for the gradients the strategy needs, e.g. ``ctx.info.retain_absgrad()``).
+    - ``regularizer(ctx) -> Tensor | None``: a term added to the view's loss (None: nothing),
+      e.g. 3DGS-MCMC's opacity and scale penalties.
+    - ``observe(ctx, state)``: after the view's backward: add to the statistics in ``state``
+      (gradient sums, counts, maxima, the online Γ); nothing else.
+
+    Then, once per step, after the gradients and the statistics of every view and every process
+    are summed (``statistics`` says how each key of ``state`` combines across processes):
+
+    - ``refine(ctx, state) -> dict``: for each iteration of the step where ``refines_at`` holds
+      (``ctx.info`` and ``ctx.view_index`` are None): change the Gaussians (densify, prune,
+      reset, relocate; only via :mod:`cdcgs.train.ops`), before the optimizer step; returns
+      numbers worth logging.
+    - ``after_step(ctx, state)``: after the optimizer step, with the step's last iteration
+      (e.g. 3DGS-MCMC's position noise).
+
+    And:
 
     - ``initialize_state(model) -> dict``: the strategy's state for a new run, and again whenever
       the strategy resets it. The trainer keeps the dict, checkpoints it and hands it back.
-    - ``before_backward(ctx, state)``: after the render, before ``loss.backward()`` (ask the
-      render for the gradients the strategy needs, e.g. ``ctx.info.retain_absgrad()``).
-    - ``after_backward(ctx, state) -> dict``: after ``backward()``, before the optimizer step:
-      accumulate statistics in ``state`` and change the Gaussians (via :mod:`cdcgs.train.ops`);
-      returns numbers worth logging (empty most iterations).
-    - ``regularizer(ctx) -> Tensor | None``: after the render, a term added to the loss (None:
-      nothing), e.g. 3DGS-MCMC's opacity and scale penalties.
-    - ``refines_at(step) -> bool``: whether ``after_backward`` may change the set of Gaussians or
-      their values at iteration ``step`` (the trainer checks the run's numbers first, so that no
-      strategy works on NaN).
-    - ``after_step(ctx, state)``: after the optimizer step (e.g. 3DGS-MCMC's position noise).
+    - ``statistics() -> dict``: the keys of ``state`` that ``observe`` adds to, each with how the
+      processes' values combine: ``"sum"`` or ``"max"``.
+    - ``refines_at(step) -> bool``: whether ``refine`` acts at iteration ``step`` (the trainer
+      checks the run's numbers first, so that no strategy works on NaN).
     - ``config() -> dict``: the name and hyperparameters, for config.json and metrics.json.
     - ``complexity_maps_method``: the method (cdcgs.complexity.METHODS) of the complexity maps
       that the hooks read from ``ctx.complexity_maps``, or None when they read none.
-
     - ``training_defaults``: the values of the training options that a run leaves at none
       (``init_opacity``, ``scale_rule``, ``init_scale``, ``opacity_lr``), e.g. 3DGS-MCMC's.
     - ``check(total_steps)``: refuse (OptionError) options that cannot act in a run of that length.
+
+    :class:`StrategyOptions` adds ``after_backward(ctx, state)``, ``observe`` then ``refine``
+    where it acts: the one-view, one-process step in one call.
     """
 
     complexity_maps_method: str | None
@@ -86,9 +105,13 @@ class Strategy(Protocol):
 
     def regularizer(self, ctx: StepContext) -> torch.Tensor | None: ...
 
-    def after_backward(self, ctx: StepContext, state: dict) -> dict: ...
+    def observe(self, ctx: StepContext, state: dict) -> None: ...
+
+    def statistics(self) -> dict: ...
 
     def refines_at(self, step: int) -> bool: ...
+
+    def refine(self, ctx: StepContext, state: dict) -> dict: ...
 
     def after_step(self, ctx: StepContext, state: dict) -> None: ...
 
@@ -111,6 +134,11 @@ class StrategyOptions:
     def options(cls) -> list:
         """The hyperparameters: dataclass fields with their help (``metadata``)."""
         return list(fields(cls))
+
+    def after_backward(self, ctx: StepContext, state: dict) -> dict:
+        """One view's step on one process: ``observe``, then ``refine`` where it acts."""
+        self.observe(ctx, state)
+        return self.refine(ctx, state) if self.refines_at(ctx.step) else {}
 
 
 @dataclass(kw_only=True)
@@ -232,10 +260,15 @@ class ADC(StrategyOptions):
             else:
                 ctx.info.means2d.retain_grad()
 
-    def after_backward(self, ctx: StepContext, state: dict) -> dict:
-        log = {}
+    def statistics(self) -> dict:
+        return {"grad_sum": "sum", "count": "sum", "max_radius": "max"}
+
+    def observe(self, ctx: StepContext, state: dict) -> None:
         if self.accumulates_at(ctx.step):
             self.accumulate(ctx, state)
+
+    def refine(self, ctx: StepContext, state: dict) -> dict:
+        log = {}
         if self.densifies_at(ctx.step):
             log.update(self.densify_and_prune(ctx, state))
         if self.resets_at(ctx.step):

@@ -7,8 +7,10 @@ All of it goes into the checkpoint and comes back on resume.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import time
 
 import torch
@@ -19,18 +21,19 @@ from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
 from ..render import prepare_camera, rasterize
 from . import outputs
-from .config import TrainConfig, background_color, config_to_dict, resolve_defaults
+from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
+from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
 from .evaluate import evaluate, lpips_metric
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
-from .ops import make_optimizer
+from .ops import make_optimizer, set_hyperparameters
 from .schedules import dash_schedule, position_lr
 from .strategies import make_strategy
 from .strategy import StepContext
 
-__all__ = ["CHECKPOINT_FORMAT", "Interrupted", "Trainer", "TrainingDiverged", "resolve_device"]
+__all__ = ["CHECKPOINT_FORMAT", "Interrupted", "Trainer", "TrainingDiverged", "crossed", "resolve_device"]
 
 log = logging.getLogger("cdcgs")
 
@@ -52,6 +55,17 @@ def resolve_device(name: str) -> torch.device:
     if device.type not in ("cuda", "cpu"):
         raise OptionError(f"device {name!r}: cdcgs runs on cpu or cuda")
     return device
+
+
+def crossed(before: int, after: int, every: int) -> bool:
+    """Whether a step from iteration ``before`` to ``after`` passes a multiple of ``every`` (0:
+    never): the events counted in iterations (views seen) fire in the step that reaches them."""
+    return every > 0 and after // every > before // every
+
+
+# How often the data-parallel step times its all-reduce (a synchronisation before and after it):
+# one step in this many, for metrics.json's communication share.
+TIME_COMMUNICATION_EVERY = 50
 
 
 def _upgrade_checkpoint(state: dict, path: str) -> dict:
@@ -96,22 +110,38 @@ class Trainer:
     viewer of ``cdcgs train --view`` is one (cdcgs.viewer.TrainingViewer).
     """
 
-    def __init__(self, config: TrainConfig, strategy_options: dict | None = None, callbacks=()):
+    def __init__(
+        self, config: TrainConfig, strategy_options: dict | None = None, callbacks=(), ranks: Ranks | None = None
+    ):
         self.config = config
         self.strategy_options = dict(strategy_options or {})
         self.callbacks = list(callbacks)
-        self.device = resolve_device(config.device)
+        # The processes of a torchrun launch (joined in run(); ``ranks``: the caller's own). Each
+        # process of a machine takes a GPU of its own where there are enough.
+        self._given_ranks = ranks
+        self.ranks = ranks or Ranks.single()
+        _, world, local_rank, local_world = _environment()
+        name = rank_device(config.device, local_rank, local_world) if world > 1 and ranks is None else config.device
+        self.device = resolve_device(name)
         self.out = config.out
         self.checkpoint_path = os.path.join(self.out, outputs.CHECKPOINT)
         self.signals = StopSignals()
         self.saved_step: int | None = None  # the iteration of the newest checkpoint in the folder
         self.peak_memory = {"train": 0, "eval": 0}  # bytes, of this process; evaluations apart
+        self.step_events: list[tuple[int, dict]] = []  # (iteration, log) of the last step's refinements
+        # Reduced over the processes every step: (a signal is pending, a render met NaN) on any.
+        self._flags = torch.zeros(2)
+        self._nonfinite_at: int | None = None  # the iteration whose render met NaN, on this process
+        self._communication: list[tuple[float, float]] = []  # (all-reduce ms, step ms) of timed steps
+        self._reduce_ms = 0.0
+        self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
 
     # ----------------------------------------------------------------------------- set-up
 
     def _setup(self):
         config = self.config
-        if not config.resume and not config.overwrite:
+        main = self.ranks.is_main
+        if main and not config.resume and not config.overwrite:
             names = (outputs.CHECKPOINT, outputs.METRICS, outputs.PLY)
             previous = [name for name in names if os.path.isfile(os.path.join(self.out, name))]
             if previous:
@@ -120,7 +150,7 @@ class Trainer:
                     f"already holds a cdcgs run ({', '.join(previous)}); pass --resume to continue it, "
                     "--overwrite to replace it, or choose another --out",
                 )
-        removed = remove_temporary_files(self.checkpoint_path)  # we hold the lock: nobody else writes
+        removed = remove_temporary_files(self.checkpoint_path) if main else 0  # rank 0 holds the lock
         if removed:
             log.warning("%s: removed %d temporary file(s) of an interrupted checkpoint write", self.out, removed)
         resume_state = None
@@ -174,7 +204,9 @@ class Trainer:
                 scale_factor=config.init_scale,
                 device=self.device,
             )
-            self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
+            self.optimizer = make_optimizer(
+                self.model, config.lr, self.scene.extent, config.optimizer, batch_rule(config)
+            )
             self.strategy_state = self.strategy.initialize_state(self.model)
             self.step = 0
             self.view_queue: list[int] = []
@@ -185,6 +217,8 @@ class Trainer:
             self.model = GaussianModel.from_state_dict(resume_state["model"], device=self.device)
             self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
             self.optimizer.load_state_dict(resume_state["optimizer"])
+            # The command's rates, eps and betas (its batch size's rule), not the checkpoint's.
+            set_hyperparameters(self.optimizer, config.lr, self.scene.extent, batch_rule(config))
             self.strategy_state = {
                 k: v.to(self.device) if torch.is_tensor(v) else v for k, v in resume_state["strategy_state"].items()
             }
@@ -199,12 +233,15 @@ class Trainer:
         fixed = background_color(config.background)
         self.background = torch.tensor(fixed or (0.0, 0.0, 0.0), device=self.device)
         self.lpips = lpips_metric(self.device)
+        kinds = self.strategy.statistics()
+        self.statistics = StatisticsSync(self.ranks, kinds) if self.ranks.distributed else None
         config_json = {
             "train": config_to_dict(config),
+            "processes": self.ranks.world,
             "strategy": self.strategy.config(),
             "scene": self._scene_summary(),
         }
-        outputs.write_json(os.path.join(self.out, outputs.CONFIG), config_json)
+        self._config_json = config_json  # written once every process has set up
 
     def _scene_summary(self) -> dict:
         s = self.scene
@@ -298,6 +335,8 @@ class Trainer:
             "view_generator": self.view_generator.get_state(),
             "guard": self.guard.state_dict(),
             "config": config_to_dict(self.config),
+            "processes": self.ranks.world,
+            "batch_size": self.config.batch_size,
         }
 
     def save(self, ply: bool = True) -> None:
@@ -305,14 +344,39 @@ class Trainer:
         non-finite numbers is never written. The first signal does not cut a save."""
         self.check_numbers(params=True)
         with self.signals.deferred():
-            save_checkpoint(self.checkpoint_path, self.state_dict())
+            if self.ranks.is_main:  # the others hold the same state
+                save_checkpoint(self.checkpoint_path, self.state_dict())
+                if ply:
+                    write_ply(os.path.join(self.out, outputs.PLY), self.model.to_ply())
             self.saved_step = self.step
-            if ply:
-                write_ply(os.path.join(self.out, outputs.PLY), self.model.to_ply())
 
     def check_numbers(self, params: bool = False) -> None:
-        """The numeric guard's check (a host synchronisation); raises TrainingDiverged."""
-        self.guard.check(self.step, self.optimizer, self.model.params if params else None, self._last_good())
+        """The numeric guard's check (a host synchronisation); raises TrainingDiverged. On several
+        processes every one checks its own numbers and they agree: any failure stops them all."""
+        if not self.ranks.distributed:
+            self.guard.check(self.step, self.optimizer, self.model.params if params else None, self._last_good())
+            return
+        error = None
+        try:
+            self.guard.check(self.step, self.optimizer, self.model.params if params else None, self._last_good())
+        except TrainingDiverged as err:
+            error = err
+        if error is None and self._nonfinite_at is not None:
+            error = self._nonfinite_error()
+        reports = self.ranks.all_gather_object(None if error is None else str(error))
+        if error is not None:
+            raise error
+        failed = [(rank, report) for rank, report in enumerate(reports) if report]
+        if failed:
+            rank, report = failed[0]
+            raise TrainingDiverged(f"rank {rank}: {report}")
+
+    def _nonfinite_error(self) -> TrainingDiverged:
+        """The error of a render that met NaN: the update before ``_nonfinite_at`` made it so."""
+        step = self._nonfinite_at - 1
+        bad = [name for name, p in self.model.params.items() if not torch.isfinite(p).all()] or ["the parameters"]
+        cause = f"the update of iteration {step} made {', '.join(bad)} NaN or infinite"
+        return self.guard.diverged(step, self.optimizer, cause, self._last_good())
 
     def _last_good(self) -> str:
         if self.saved_step is None:
@@ -332,6 +396,21 @@ class Trainer:
             self.peak_memory[part] = max(self.peak_memory[part], peak)
             torch.cuda.reset_peak_memory_stats(self.device)
 
+    def _communication_summary(self) -> dict:
+        """The all-reduce's share of a step, from the timed steps (one in
+        ``TIME_COMMUNICATION_EVERY``, each synchronised before and after its all-reduce)."""
+        if not self._communication:
+            return {"timed_steps": 0}
+        reduce_ms = sum(r for r, _ in self._communication) / len(self._communication)
+        step_ms = sum(t for _, t in self._communication) / len(self._communication)
+        return {
+            "timed_steps": len(self._communication),
+            "all_reduce_ms_per_step": reduce_ms,
+            "step_ms": step_ms,
+            "share": reduce_ms / max(step_ms, 1e-9),
+            "backend": self.ranks.backend,
+        }
+
     def _evaluate(self, final: bool) -> dict:
         self.check_numbers(params=True)
         self._peak_memory("train")  # the LPIPS networks' activations are not the training's memory
@@ -343,6 +422,7 @@ class Trainer:
             antialiased=self.config.antialiased,
             save_dir=save_dir,
             lpips=self.lpips,
+            ranks=self.ranks if self.ranks.distributed else None,
         )
         self._peak_memory("eval")
         summary = {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_vgg", "lpips_alex", "num_gaussians")}
@@ -352,40 +432,74 @@ class Trainer:
     # -------------------------------------------------------------------------------- loop
 
     def train_step(self) -> dict:
-        """One iteration: render, loss, backward, the strategy's hooks, the optimizer step. Reads
-        nothing back from the device itself (the render reads its intersection count) except
-        where the strategy is about to change the Gaussians; returns the strategy's log."""
+        """One step: ``--batch-size`` views (this process's share of them), each rendered, scored
+        and back-propagated with the strategy's per-view hooks; the gradients and statistics
+        summed over the views and the processes and averaged; the strategy's refinements of the
+        step's iterations; one optimizer step. Reads nothing back from the device itself (the
+        render reads its intersection count) except where the strategy is about to change the
+        Gaussians. Returns the strategy's logs of the step merged (each also in ``step_events``
+        with its own iteration)."""
         config = self.config
-        self.step += 1
-        step = self.step
+        first = self.step + 1
+        count = min(config.batch_size, config.iters - self.step)
+        last = self.step + count
+        timed = self.ranks.distributed and (first // config.batch_size) % TIME_COMMUNICATION_EVERY == 10
+        if timed:
+            self._synchronize()
+            step_start = time.perf_counter()
+        lr_scale = batch_rule(config)[0]
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 decay_from = 0 if self.resolution is None else self.resolution.decay_from()
-                group["lr"] = position_lr(step, config.iters, config.lr, self.scene.extent, decay_from)
-        if step % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
-            self.model.sh_degree += 1
-        view_index = self._next_view()
-        view = self.scene.train[view_index]
-        scale = self._downscale(step)
-        try:
-            image, _, info = self._render(view_index, self._step_background(), scale)
-        except NonFiniteError as err:
-            # The render checks the parameters it reads: the last update made them non-finite.
-            self.step -= 1
-            bad = [name for name, p in self.model.params.items() if not torch.isfinite(p).all()] or [err.name]
-            cause = f"the update of iteration {self.step} made {', '.join(bad)} NaN or infinite"
-            raise self.guard.diverged(self.step, self.optimizer, cause, self._last_good()) from None
-        photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
-        if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
-            loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
-            image_psnr = mse_to_psnr(mse)
+                group["lr"] = position_lr(first, config.iters, config.lr, self.scene.extent, decay_from) * lr_scale
+        for iteration in range(first, last + 1):
+            if iteration % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
+                self.model.sh_degree += 1
+        # Every process draws the whole batch (views, backgrounds) from the same streams and
+        # renders its positions of it; the step's draws come from a generator seeded by (seed, step).
+        views = [self._next_view() for _ in range(count)]
+        self.generator.manual_seed(step_seed(config.seed, first))
+        backgrounds = [self._step_background() for _ in range(count)]
+        if self.statistics is not None:
+            self.statistics.begin(self.strategy_state)
+        visible = None
+        for position in my_positions(count, self.ranks.rank, self.ranks.world):
+            info = self._view_backward(first + position, views[position], backgrounds[position])
+            if info is None:  # on several processes: a render met NaN; the others learn it below
+                break
+            if config.optimizer == "selective":
+                visible = info.visible if visible is None else visible | info.visible
+        if config.optimizer == "selective" and visible is None:
+            visible = torch.zeros(self.model.num, dtype=torch.bool, device=self.device)
+        self._reduce(count, visible, timed)
+        self.step = last
+        self.step_events = []
+        for iteration in range(first, last + 1):
+            if self.strategy.refines_at(iteration):
+                self.check_numbers()
+                log = self.strategy.refine(self._context(iteration), self.strategy_state)
+                if log:
+                    self.step_events.append((iteration, log))
+                if self.statistics is not None:
+                    self.statistics.begin(self.strategy_state)  # the new Gaussians' statistics
+        if config.optimizer == "selective":
+            self.optimizer.step(self._visible if self._visible.shape[0] == self.model.num else None)
         else:
-            target = photo.float() / 255.0
-            loss = photometric_loss(image, target, config.ssim_weight)
-            image_psnr = psnr(image.detach(), target)
-        ctx = StepContext(
-            step=step,
-            total_steps=config.iters,
+            self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.strategy.after_step(self._context(last), self.strategy_state)
+        if timed:
+            self._synchronize()
+            self._communication.append((self._reduce_ms, (time.perf_counter() - step_start) * 1e3))
+        merged = {}
+        for _, log in self.step_events:
+            merged.update(log)
+        return merged
+
+    def _context(self, iteration: int, info=None, view_index: int | None = None) -> StepContext:
+        return StepContext(
+            step=iteration,
+            total_steps=self.config.iters,
             model=self.model,
             optimizer=self.optimizer,
             info=info,
@@ -395,23 +509,83 @@ class Trainer:
             render=self._render,
             views=self.scene.train,
             complexity_maps=self.complexity_maps,
+            ranks=self.ranks if self.ranks.distributed else None,
         )
+
+    def _view_backward(self, iteration: int, view_index: int, background: torch.Tensor):
+        """Render one training view at ``iteration``, add its loss's gradients and the strategy's
+        statistics; returns the render's info. A render that meets NaN parameters stops a single
+        process at once; on several, it returns None and the processes stop together at the next
+        check (:meth:`check_numbers`)."""
+        config = self.config
+        view = self.scene.train[view_index]
+        scale = self._downscale(iteration)
+        try:
+            image, _, info = self._render(view_index, background, scale)
+        except NonFiniteError:
+            # The render checks the parameters it reads: the last update made them non-finite.
+            if self.ranks.distributed:
+                self._nonfinite_at = self._nonfinite_at or iteration
+                return None
+            self._nonfinite_at = iteration
+            raise self._nonfinite_error() from None
+        photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
+        if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
+            loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
+            image_psnr = mse_to_psnr(mse)
+        else:
+            target = photo.float() / 255.0
+            loss = photometric_loss(image, target, config.ssim_weight)
+            image_psnr = psnr(image.detach(), target)
+        ctx = self._context(iteration, info, view_index)
         self.strategy.before_backward(ctx, self.strategy_state)
         regularizer = self.strategy.regularizer(ctx)
         if regularizer is not None:
             loss = loss + regularizer
-        loss.backward()
+        loss.backward()  # each view's full gradient; _reduce averages them
         self.guard.record(loss, image_psnr)
-        if self.strategy.refines_at(step):
-            self.check_numbers()
-        strategy_log = self.strategy.after_backward(ctx, self.strategy_state)
-        if config.optimizer == "selective":
-            self.optimizer.step(info.visible)  # the Gaussians this view sees
-        else:
-            self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        self.strategy.after_step(ctx, self.strategy_state)
-        return strategy_log
+        self.strategy.observe(ctx, self.strategy_state)
+        return info
+
+    def _reduce(self, count: int, visible: torch.Tensor | None, timed: bool) -> None:
+        """Average the step's gradients over its ``count`` views (on several processes: one flat
+        all-reduce that also carries the statistics' additions, the visible masks and the flags)."""
+        params = [group["params"][0] for group in self.optimizer.param_groups]
+        self._visible = visible
+        if not self.ranks.distributed:
+            self.ranks.reduce_gradients(params, count)
+            return
+        flags = torch.tensor(
+            [float(self.signals.pending is not None), float(self._nonfinite_at is not None)], device=self.device
+        )
+        extras = [*self.statistics.deltas(self.strategy_state), flags]
+        if visible is not None:
+            extras.append(visible.float())
+        if timed:
+            self._synchronize()
+            start = time.perf_counter()
+        reduced = self.ranks.reduce_gradients(params, count, extras)
+        if visible is not None:
+            self._visible = reduced.pop() > 0
+        self._flags = reduced.pop()
+        self.statistics.finish(self.strategy_state, reduced)
+        if timed:
+            self._synchronize()
+            self._reduce_ms = (time.perf_counter() - start) * 1e3
+
+    def _synchronize(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def _raise_pending(self, agreed: bool = True) -> None:
+        """Stop cleanly where a signal is pending. One process: at once. Several: only at an
+        ``agreed`` point (every process passes it at the same iteration), where the reduced flag
+        says whether any process has one, so that all stop together."""
+        if not self.ranks.distributed:
+            self.signals.raise_pending()
+            return
+        if agreed and float(self._flags[0]) > 0:
+            raise Interrupted(self.signals.pending or signal.SIGTERM, clean=True)
 
     def run(self) -> dict:
         """Train to ``config.iters`` (from the checkpoint with ``resume``), evaluate, write outputs.
@@ -421,13 +595,50 @@ class Trainer:
         SIGINT and SIGTERM end the run with :class:`Interrupted` (see :mod:`cdcgs.train.interrupt`):
         the first, during the training loop, after a whole iteration and with a checkpoint of it;
         elsewhere, or a second one, at once and writing nothing more.
+
+        In a torchrun launch (docs/distributed.md) every process calls this: they join one
+        process group, rank 0 holds the lock and writes, and a failure of one stops the others
+        (:class:`cdcgs.train.distributed.RankFailed`).
         """
-        if os.path.exists(self.out) and not os.path.isdir(self.out):
-            raise InputError(self.out, "--out names a file, not a folder")
-        created = not os.path.exists(self.out)
-        os.makedirs(self.out, exist_ok=True)
+        config = self.config
+        if self._given_ranks is None:
+            self.ranks = Ranks.from_environment(self.device, config.dist_backend, config.dist_timeout)
+        finished = False
         try:
-            with self.signals, outputs.RunLock(self.out) as lock:
+            if self.ranks.world > config.batch_size:
+                raise OptionError(
+                    f"--batch-size {config.batch_size} is smaller than the {self.ranks.world} processes: each "
+                    f"renders at least one view per step (use --batch-size {self.ranks.world} or more)"
+                )
+            if self.ranks.is_main:
+                result = self._run_main()
+            else:
+                with self.signals:
+                    result = self._run()
+            finished = True
+            return result
+        finally:
+            if self._given_ranks is None:
+                self.ranks.close(wait=finished)
+
+    def _run_main(self) -> dict:
+        """Rank 0's run (the only one of a single process): the folder and its lock, then
+        :meth:`_run`. A failure before the set-up is reported to the other processes."""
+        created = False
+        try:
+            if os.path.exists(self.out) and not os.path.isdir(self.out):
+                raise InputError(self.out, "--out names a file, not a folder")
+            created = not os.path.exists(self.out)
+            os.makedirs(self.out, exist_ok=True)
+        except Exception as err:  # the others wait for the set-up's verdict
+            self.ranks.all_ok(err, "set-up")
+        try:
+            with contextlib.ExitStack() as stack:
+                stack.enter_context(self.signals)
+                try:
+                    lock = stack.enter_context(outputs.RunLock(self.out))
+                except Exception as err:  # (another training holds the folder)
+                    self.ranks.all_ok(err, "set-up")
                 if lock.stale:
                     log.warning(
                         "%s: took over the lock of a training that is gone (pid %s on %s, started %s)",
@@ -459,14 +670,27 @@ class Trainer:
             print(f"stopped at once by {stop}: no checkpoint was written")
 
     def _run(self) -> dict:
-        self._setup()
+        error = None
+        try:
+            self._setup()
+        except Exception as err:  # every process learns of it and stops
+            error = err
+        self.ranks.all_ok(error, "set-up")
+        if self.ranks.is_main:
+            outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
         config = self.config
         from tqdm import tqdm
 
         if self.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(self.device)
         started = []
-        bar = tqdm(total=config.iters, initial=self.step, disable=not config.progress, unit="it", dynamic_ncols=True)
+        bar = tqdm(
+            total=config.iters,
+            initial=self.step,
+            disable=not (config.progress and self.ranks.is_main),
+            unit="it",
+            dynamic_ncols=True,
+        )
         try:
             for callback in self.callbacks:
                 callback.on_start(self)
@@ -474,7 +698,7 @@ class Trainer:
             with self.signals.deferred():
                 while self.step < config.iters:
                     self._iteration(bar)
-                    self.signals.raise_pending()
+                    self._raise_pending(agreed=False)
         except Interrupted as stop:
             bar.close()
             if stop.clean:
@@ -487,46 +711,54 @@ class Trainer:
         return self.finish()
 
     def _iteration(self, bar) -> None:
-        """One training iteration and what follows it: callbacks, logs, evaluation, checkpoint."""
+        """One training step and what follows it: callbacks, logs, evaluation, checkpoint (each
+        when the step reaches its iteration)."""
         config = self.config
+        before = self.step
         start = time.perf_counter()
-        strategy_log = self.train_step()
+        self.train_step()
         self.train_seconds += time.perf_counter() - start
         for callback in self.callbacks:
             callback.on_step(self)
-        if strategy_log:
-            self.history["strategy"].append({"step": self.step, **strategy_log})
+        for iteration, strategy_log in self.step_events:
+            self.history["strategy"].append({"step": iteration, **strategy_log})
         step, last = self.step, self.step == config.iters
-        report = not config.progress and (step % 1000 == 0 or last)
-        if step % config.log_every == 0 or last or report:
+        logged = crossed(before, step, config.log_every) or last
+        report = not config.progress and (crossed(before, step, 1000) or last)
+        if logged or report:
             self.check_numbers()  # where the running means are read anyway: one host synchronisation
+            self._raise_pending()
             loss, psnr_value = self.guard.means()
-            if step % config.log_every == 0 or last:
+            if logged:
                 for key, value in (("step", step), ("loss", loss), ("psnr", psnr_value), ("gaussians", self.model.num)):
                     self.history[key].append(value)
             bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr_value:.2f}", gaussians=self.model.num, refresh=False)
-            if report:
+            if report and self.ranks.is_main:
                 print(
                     f"[{step}/{config.iters}] loss {loss:.4f}, PSNR {psnr_value:.2f} dB, "
                     f"{self.model.num} Gaussians, {step / max(self.train_seconds, 1e-9):.1f} it/s",
                     flush=True,
                 )
-        bar.update(1)
-        if config.eval_every and step % config.eval_every == 0 and not last and self.scene.test:
-            self.signals.raise_pending()  # a signal during the iteration: stop before a long evaluation
+        bar.update(step - before)
+        if self.ranks.distributed and crossed(before, step, config.check_ranks_every):
+            self.ranks.check_in_step(self.model.params, step)
+        if crossed(before, step, config.eval_every) and not last and self.scene.test:
+            self._raise_pending()  # a signal during the step: stop before a long evaluation
             metrics = self._evaluate(final=False)
-            bar.write(
-                f"[{step}] test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {self.model.num} Gaussians"
-            )
-        if config.checkpoint_every and step % config.checkpoint_every == 0 and not last:
-            self.signals.raise_pending()  # the interrupt's checkpoint is this one, with the PLY
+            if self.ranks.is_main:
+                bar.write(
+                    f"[{step}] test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {self.model.num} Gaussians"
+                )
+        if crossed(before, step, config.checkpoint_every) and not last:
+            self._raise_pending()  # the interrupt's checkpoint is this one, with the PLY
             self.save(ply=False)
 
     def finish(self) -> dict:
         self.save()
-        self.signals.raise_pending()  # a signal during that save: the run is saved, stop here
+        self._raise_pending()  # a signal during that save: the run is saved, stop here
         metrics = self._evaluate(final=True) if self.scene.test else {"views": 0}
         cuda = self.device.type == "cuda"
+        peaks = self.ranks.all_gather_object(self.peak_memory["train"] / 1e9 if cuda else None)
         result = {
             "test": {k: v for k, v in metrics.items() if k != "per_view"},
             "per_view": metrics.get("per_view", []),
@@ -538,7 +770,14 @@ class Trainer:
             "peak_gpu_memory_eval_gb": self.peak_memory["eval"] / 1e9 if cuda and self.scene.test else None,
             "device": torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu",
             "strategy": self.strategy.config(),
+            "batch_size": self.config.batch_size,
+            "processes": self.ranks.world,
+            "peak_gpu_memory_gb_per_process": peaks,
         }
+        if self.ranks.distributed:
+            result["communication"] = self._communication_summary()
+        if not self.ranks.is_main:
+            return result
         outputs.write_json(os.path.join(self.out, outputs.METRICS), result)
         outputs.write_json(os.path.join(self.out, outputs.HISTORY), self.history, indent=None)
         outputs.plot_curves(self.history, os.path.join(self.out, "curves.png"))

@@ -1,0 +1,207 @@
+"""Processes for the data-parallel tests: a launcher that starts N ranks of a task on the CPU with
+gloo, as torchrun would (its environment variables), and the tasks they run.
+
+Each task runs in a fresh process (spawn), returns a picklable result, and the launcher collects
+every rank's result or error with its exit code and time.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import signal
+import socket
+import time
+import traceback
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _entry(task: str, rank: int, world: int, port: int, result_path: str, kwargs: dict) -> None:
+    os.environ.update(
+        {
+            "RANK": str(rank),
+            "WORLD_SIZE": str(world),
+            "LOCAL_RANK": str(rank),
+            "LOCAL_WORLD_SIZE": str(world),
+            "MASTER_ADDR": "127.0.0.1",
+            "MASTER_PORT": str(port),
+        }
+    )
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.config.quiet = True
+    start = time.monotonic()
+    try:
+        out = {"result": globals()[task](rank=rank, world=world, **kwargs)}
+    except BaseException as err:  # the test looks at what each rank raised
+        out = {"error": type(err).__name__, "message": str(err), "traceback": traceback.format_exc()}
+    out["seconds"] = time.monotonic() - start
+    with open(result_path, "wb") as f:
+        pickle.dump(out, f)
+
+
+def run_ranks(task: str, world: int, tmp_path, timeout: float = 60.0, **kwargs) -> list[dict]:
+    """Run ``task`` on ``world`` processes (ranks 0..world-1, gloo on the CPU); each rank's
+    {"result" or "error", "message", "seconds", "exitcode"}, in rank order."""
+    context = multiprocessing.get_context("spawn")
+    port = free_port()
+    paths = [os.path.join(str(tmp_path), f"rank{rank}_{task}_{port}.pkl") for rank in range(world)]
+    processes = [
+        context.Process(target=_entry, args=(task, rank, world, port, paths[rank], kwargs)) for rank in range(world)
+    ]
+    for p in processes:
+        p.start()
+    deadline = time.monotonic() + timeout
+    for p in processes:
+        p.join(max(deadline - time.monotonic(), 0.1))
+    outs = []
+    for p, path in zip(processes, paths):
+        if p.is_alive():
+            p.kill()
+            p.join()
+            outs.append({"error": "Timeout", "message": f"still running after {timeout} s", "exitcode": None})
+            continue
+        out = {"error": "NoResult", "message": "the process left no result"}
+        if os.path.exists(path):
+            with open(path, "rb") as f:
+                out = pickle.load(f)
+        out["exitcode"] = p.exitcode
+        outs.append(out)
+    return outs
+
+
+# --------------------------------------------------------------------------------------- tasks
+
+
+def task_config(scene, out, **overrides):
+    from cdcgs.train.config import DataConfig, TrainConfig
+
+    values = dict(
+        data=DataConfig(data=str(scene), test_every=3),
+        out=str(out),
+        iters=12,
+        device="cpu",
+        eval_every=0,
+        checkpoint_every=0,
+        progress=False,
+        sh_every=4,
+        log_every=2,
+        batch_size=2,
+        dist_timeout=20.0,
+    )
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+# Densification at 4 and 8, an opacity reset at 8, growth from a low threshold: a short run that
+# changes the set of Gaussians and draws random numbers.
+SCHEDULE = {"densify_from": 2, "densify_every": 4, "densify_until": 10, "reset_every": 8, "grad_threshold": 1e-5}
+
+
+def params_of(trainer) -> dict:
+    return {name: p.detach().cpu().clone() for name, p in trainer.model.params.items()}
+
+
+def first_step_gradients(rank, world, scene, out, batch_size=2, strategy="3dgs", device="cpu", backend="auto"):
+    """The gradients of the first step after the reduction, before the optimizer step (on the CPU)."""
+    from cdcgs.train.trainer import Trainer
+
+    config = task_config(scene, out, batch_size=batch_size, strategy=strategy, device=device, dist_backend=backend)
+    trainer = Trainer(config, dict(SCHEDULE))
+    captured = {}
+    real_step = None
+
+    def spy(*args, **kwargs):
+        for group in trainer.optimizer.param_groups:
+            captured[group["name"]] = group["params"][0].grad.detach().cpu().clone()
+        return real_step(*args, **kwargs)
+
+    from cdcgs.train.distributed import Ranks
+
+    trainer.ranks = Ranks.from_environment(trainer.device, backend)
+    trainer._given_ranks = trainer.ranks
+    os.makedirs(out, exist_ok=True)
+    trainer._setup()
+    real_step = trainer.optimizer.step
+    trainer.optimizer.step = spy
+    trainer.train_step()
+    trainer.ranks.close()
+    return captured
+
+
+def train(
+    rank, world, scene, out, strategy="3dgs", options=None, stop_at=None, die_at=None, perturb_at=None, **overrides
+):
+    """A whole run; the parameters' checksums after every step, the final parameters, and the
+    files each rank wrote. ``stop_at``: this rank sends itself SIGTERM after that iteration;
+    ``die_at``: rank 1 exits at once there; ``perturb_at``: rank 1 changes a parameter there."""
+    import torch
+
+    from cdcgs.train import outputs
+    from cdcgs.train import trainer as trainer_module
+    from cdcgs.train.distributed import _checksum
+    from cdcgs.train.trainer import Trainer
+
+    writes = []
+    for module, name in ((trainer_module, "save_checkpoint"), (trainer_module, "write_ply"), (outputs, "write_json")):
+        real = getattr(module, name)
+
+        def spy(*args, _real=real, _name=name, **kwargs):
+            writes.append(_name)
+            return _real(*args, **kwargs)
+
+        setattr(module, name, spy)
+    checksums, sent = [], []
+    real_step = Trainer.train_step
+
+    def step(self):
+        result = real_step(self)
+        checksums.append((self.step, _checksum(self.model.params)))
+        if stop_at is not None and rank == world - 1 and self.step >= stop_at and not sent:
+            sent.append(self.step)
+            os.kill(os.getpid(), signal.SIGTERM)
+        if die_at is not None and rank == 1 and self.step >= die_at:
+            os._exit(17)
+        if perturb_at is not None and rank == 1 and self.step == perturb_at:
+            with torch.no_grad():
+                self.model.params["means"][0, 0] += 1e-3
+        return result
+
+    Trainer.train_step = step
+    trainer = Trainer(
+        task_config(scene, out, strategy=strategy, **overrides), dict(SCHEDULE if options is None else options)
+    )
+    try:
+        result = trainer.run()
+    except KeyboardInterrupt as stop:
+        return {"stopped": str(stop), "step": trainer.step, "checksums": checksums, "writes": writes}
+    return {
+        "checksums": checksums,
+        "params": params_of(trainer),
+        "writes": writes,
+        "metrics": {k: result[k] for k in ("num_gaussians", "iterations", "processes", "batch_size")},
+        "test": result["test"],
+        "events": list(trainer.history["strategy"]),
+    }
+
+
+def failing_setup(rank, world, scene, out):
+    """Rank 1 cannot read its scene; rank 0 is fine."""
+    from cdcgs.errors import InputError
+    from cdcgs.train import trainer as trainer_module
+    from cdcgs.train.trainer import Trainer
+
+    if rank == 1:
+
+        def broken(*args, **kwargs):
+            raise InputError(str(scene), "unreadable on this rank (the test's fault)")
+
+        trainer_module.load_scene = broken
+    Trainer(task_config(scene, out), dict(SCHEDULE)).run()

@@ -1,0 +1,268 @@
+"""Data-parallel training (cdcgs.train.distributed) on the CPU with gloo, and batches of views in
+one process: 2 processes of a scene of 32 x 32 views and a few dozen Gaussians against one."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from dist_tasks import SCHEDULE, first_step_gradients, run_ranks, task_config
+from helpers import hand_model
+
+from cdcgs.datasets.procedural import make_procedural_scene
+from cdcgs.train import ops
+from cdcgs.train.config import LearningRates, TrainConfig, batch_rule
+from cdcgs.train.distributed import my_positions, step_seed
+from cdcgs.train.trainer import Trainer, crossed
+
+pytestmark = pytest.mark.skipif(
+    not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+    reason="this torch has no torch.distributed with gloo",
+)
+
+MCMC_SCHEDULE = {"refine_from": 2, "refine_every": 4, "refine_until": 10, "target_gaussians": 80}
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    """9 views of 32 x 32 pixels (6 for training, 3 held out) and 48 points."""
+    return make_procedural_scene(tmp_path_factory.mktemp("dist_scene"), views=9, width=32, height=32, points=48)
+
+
+def ok(outs):
+    for rank, out in enumerate(outs):
+        assert "result" in out, f"rank {rank}: {out.get('error')}: {out.get('message')}\n{out.get('traceback', '')}"
+    return [out["result"] for out in outs]
+
+
+def assert_params_close(a, b, rtol=1e-5, atol=1e-6):
+    assert a.keys() == b.keys()
+    for name in a:
+        assert a[name].shape == b[name].shape, name
+        torch.testing.assert_close(a[name], b[name], rtol=rtol, atol=atol, msg=name)
+
+
+@pytest.fixture(scope="module")
+def runs_3dgs(small_scene, tmp_path_factory):
+    """The same 12-iteration run (batch 2, densification at 4 and 8, a reset at 8) on 2 processes and on 1."""
+    tmp = tmp_path_factory.mktemp("runs_3dgs")
+    two = ok(run_ranks("train", 2, tmp, scene=small_scene, out=tmp / "two"))
+    one = ok(run_ranks("train", 1, tmp, scene=small_scene, out=tmp / "one"))[0]
+    return two, one, tmp
+
+
+def test_two_processes_sum_the_gradients_of_one_batch(small_scene, tmp_path):
+    ranks = ok(run_ranks("first_step_gradients", 2, tmp_path, scene=small_scene, out=tmp_path / "two"))
+    one = first_step_gradients(rank=0, world=1, scene=small_scene, out=tmp_path / "one")
+    for name in one:
+        assert torch.equal(ranks[0][name], ranks[1][name]), name
+        torch.testing.assert_close(ranks[0][name], one[name], rtol=1e-5, atol=1e-9, msg=name)
+    assert any(g.abs().max() > 0 for g in one.values())
+
+
+def test_two_processes_on_one_gpu_with_gloo_sum_the_gradients(small_scene, tmp_path, device):
+    """The CUDA path of gloo (several processes sharing a GPU): gloo reduces host copies. Reducing
+    the CUDA tensors directly trained to 10 dB on bonsai (H100, 2026-11-25) with equal ranks."""
+    if device == "cpu":
+        pytest.skip("the CPU case is test_two_processes_sum_the_gradients_of_one_batch")
+    gpu = dict(scene=small_scene, device="cuda:0", backend="gloo")
+    ranks = ok(run_ranks("first_step_gradients", 2, tmp_path, out=tmp_path / "two", **gpu))
+    one = first_step_gradients(rank=0, world=1, out=tmp_path / "one", **gpu)
+    for name in one:
+        assert torch.equal(ranks[0][name], ranks[1][name]), name
+        scale = float(one[name].abs().max())
+        torch.testing.assert_close(ranks[0][name], one[name], rtol=1e-4, atol=1e-6 * scale, msg=name)
+    assert any(g.abs().max() > 0 for g in one.values())
+
+
+def test_ranks_stay_equal_and_match_one_process(runs_3dgs):
+    (r0, r1), one, _ = runs_3dgs
+    assert [s for s, _ in r0["checksums"]] == list(range(2, 13, 2))
+    assert r0["checksums"] == r1["checksums"], "the ranks' parameters differ after some step"
+    kinds = {key for event in r0["events"] for key in event}
+    assert {"cloned", "split", "opacity_reset"} <= kinds, "the run must densify and reset"
+    assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] == [4, 8]
+    assert r0["metrics"] == {**one["metrics"], "processes": 2}
+    assert_params_close(r0["params"], one["params"])
+    assert r0["test"]["views"] == one["test"]["views"] == 3
+    assert r0["test"]["psnr"] == pytest.approx(one["test"]["psnr"], abs=1e-3)
+
+
+def test_only_rank_0_writes(runs_3dgs):
+    (r0, r1), _, tmp = runs_3dgs
+    assert r1["writes"] == []
+    assert {"save_checkpoint", "write_ply", "write_json"} <= set(r0["writes"])
+    folder = tmp / "two"
+    assert len(os.listdir(folder / "test_renders")) == 3, "every test view's picture, written by rank 0"
+    assert json.loads((folder / "config.json").read_text())["processes"] == 2
+    state = torch.load(folder / "checkpoint.pt", map_location="cpu", weights_only=False)
+    assert (state["processes"], state["batch_size"]) == (2, 2)
+
+
+@pytest.mark.parametrize(
+    "strategy, options",
+    [
+        ("cdc", {**SCHEDULE, "periodic_prune_every": 8}),
+        ("cdc", {**SCHEDULE, "complexity_schedule": "online", "view_aggregation": "mean"}),
+        ("mcmc", MCMC_SCHEDULE),
+    ],
+    ids=["cdc", "cdc-online-mean", "mcmc"],
+)
+def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, options):
+    """CDC's Γ pass split over the ranks, its online statistics reduced, MCMC's draws seeded by step."""
+    r0, r1 = ok(
+        run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", strategy=strategy, options=options)
+    )
+    one = ok(
+        run_ranks("train", 1, tmp_path, scene=small_scene, out=tmp_path / "one", strategy=strategy, options=options)
+    )[0]
+    assert r0["checksums"] == r1["checksums"]
+    assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] and r0["events"]
+    assert_params_close(r0["params"], one["params"], rtol=1e-4, atol=1e-5)
+
+
+def test_a_stopped_run_on_two_processes_resumes_in_one(small_scene, runs_3dgs):
+    (whole, _), _, tmp = runs_3dgs
+    out = tmp / "stopped"
+    stopped = ok(run_ranks("train", 2, tmp, scene=small_scene, out=out, stop_at=5))
+    # Rank 1 alone got the signal, after the step to iteration 6; its flag travels with the next
+    # step's all-reduce, and both stop at the log point after it (iteration 8).
+    assert [s["step"] for s in stopped] == [8, 8] and all("stopped" in s for s in stopped)
+    resumed = ok(run_ranks("train", 1, tmp, scene=small_scene, out=out, resume=True))[0]
+    assert resumed["checksums"][0][0] == 10
+    assert_params_close(resumed["params"], whole["params"])
+
+
+def test_a_run_of_one_process_resumes_on_two(small_scene, runs_3dgs):
+    _, whole, tmp = runs_3dgs
+    out = tmp / "stopped_one"
+    ok(run_ranks("train", 1, tmp, scene=small_scene, out=out, stop_at=3))
+    r0, r1 = ok(run_ranks("train", 2, tmp, scene=small_scene, out=out, resume=True))
+    assert r0["checksums"] == r1["checksums"] and r0["checksums"][0][0] == 6
+    assert_params_close(r0["params"], whole["params"])
+
+
+def test_a_dead_rank_stops_the_others(small_scene, tmp_path):
+    r0, r1 = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "run", die_at=4)
+    assert r1["exitcode"] == 17
+    assert r0.get("error") == "RankFailed", r0
+    assert r0["seconds"] < 25
+
+
+def test_a_failed_setup_stops_every_rank_with_the_cause(small_scene, tmp_path):
+    r0, r1 = run_ranks("failing_setup", 2, tmp_path, scene=small_scene, out=tmp_path / "run")
+    assert r1.get("error") == "InputError"
+    assert r0.get("error") == "RankFailed" and "rank 1" in r0["message"] and "unreadable" in r0["message"]
+    assert r0["seconds"] < 25
+    assert not (tmp_path / "run").exists(), "the folder rank 0 made is removed again"
+
+
+def test_ranks_that_drift_apart_stop(small_scene, tmp_path):
+    outs = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "run", perturb_at=4, check_ranks_every=6)
+    assert [o.get("error") for o in outs] == ["RankDrift", "RankDrift"], outs
+    assert "iteration 6" in outs[0]["message"]
+
+
+def test_a_batch_smaller_than_the_processes_is_refused(small_scene, tmp_path):
+    outs = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "run", batch_size=1)
+    assert [o.get("error") for o in outs] == ["OptionError", "OptionError"]
+    assert "--batch-size 1" in outs[0]["message"]
+
+
+def test_torchrun_launches_the_command_line(small_scene, tmp_path):
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "cdcgs"]
+    command += ["train", "--data", str(small_scene), "--out", str(out), "--iters", "4", "--batch-size", "2"]
+    command += ["--device", "cpu", "--no-progress", "--test-every", "3", "--eval-every", "2"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    printed = done.stdout + done.stderr
+    assert printed.count("outputs in") == 1 and printed.count("[2] test PSNR") == 1, "only rank 0 prints"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["processes"], metrics["batch_size"], metrics["iterations"]) == (2, 2, 4)
+
+
+# ------------------------------------------------------------------------- one process, batches
+
+
+def small_config(scene, out, **overrides):
+    """One process: the tasks' configuration with one view per step unless told otherwise."""
+    return task_config(scene, out, **{"batch_size": 1, "log_every": 50, **overrides})
+
+
+def test_a_batch_gradient_is_the_mean_of_its_views(small_scene, tmp_path):
+    from cdcgs.train.loss import fused_photometric_loss
+
+    trainer = Trainer(small_config(small_scene, tmp_path, batch_size=3), dict(SCHEDULE))
+    trainer._setup()
+    queue, state = list(trainer.view_queue), trainer.view_generator.get_state()
+    views = [trainer._next_view() for _ in range(3)]
+    trainer.view_queue = queue
+    trainer.view_generator.set_state(state)
+    params = [g["params"][0] for g in trainer.optimizer.param_groups]
+    expected = [torch.zeros_like(p) for p in params]
+    for index in views:
+        image, _, _ = trainer._render(index)
+        loss, _ = fused_photometric_loss(image, trainer.scene.train[index].image, trainer.config.ssim_weight)
+        for e, g in zip(expected, torch.autograd.grad(loss, params)):
+            e += g / 3
+    captured = []
+    real_step = trainer.optimizer.step
+    trainer.optimizer.step = lambda *a, **k: (captured.extend(p.grad.clone() for p in params), real_step(*a, **k))
+    trainer.train_step()
+    assert trainer.step == 3
+    for got, want, group in zip(captured, expected, trainer.optimizer.param_groups):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-9, msg=group["name"])
+
+
+@pytest.mark.parametrize("batch", [3, 4])
+def test_schedules_count_views_not_steps(small_scene, tmp_path, batch):
+    one = Trainer(small_config(small_scene, tmp_path / "one", log_every=2), dict(SCHEDULE))
+    one.run()
+    many = Trainer(small_config(small_scene, tmp_path / "many", log_every=2, batch_size=batch), dict(SCHEDULE))
+    many.run()
+    steps = [e["step"] for e in one.history["strategy"]]
+    assert steps == [4, 8]
+    assert [e["step"] for e in many.history["strategy"]] == steps, "refinements at the same views seen"
+    assert {k for e in many.history["strategy"] for k in e} == {k for e in one.history["strategy"] for k in e}
+    assert many.step == 12 and many.model.sh_degree == one.model.sh_degree == 3
+    # The log points: every multiple of log_every that a step reaches, recorded at the step's end.
+    assert many.history["step"] == sorted({math.ceil(i / batch) * batch for i in range(2, 13, 2)})
+
+
+def test_the_batch_rule_scales_rates_eps_and_betas():
+    assert batch_rule(TrainConfig(batch_size=4)) == (2.0, 0.5, 4.0)
+    assert batch_rule(TrainConfig(batch_size=4, batch_lr_scale=1.0, batch_beta_power=1.0)) == (1.0, 0.5, 1.0)
+    model, _ = hand_model()
+    lrs = LearningRates(opacity_logits=0.025)
+    optimizer = ops.make_optimizer(model, lrs, 2.0, batch_rule=batch_rule(TrainConfig(batch_size=4)))
+    groups = {g["name"]: g for g in optimizer.param_groups}
+    assert groups["means"]["lr"] == pytest.approx(lrs.means_init * 2.0 * 2.0)
+    assert groups["opacity_logits"]["lr"] == pytest.approx(0.05)
+    assert groups["quats"]["eps"] == pytest.approx(0.5e-15)
+    assert groups["sh_dc"]["betas"] == pytest.approx((0.9**4, 0.999**4))
+
+
+def test_resuming_takes_the_commands_rates(small_scene, tmp_path):
+    first = Trainer(small_config(small_scene, tmp_path, iters=12), dict(SCHEDULE))
+    first.run()
+    # The same run continued to 16 views with a batch of 4 and another rotation rate.
+    lrs = LearningRates(quats=5e-3)
+    again = Trainer(small_config(small_scene, tmp_path, iters=16, resume=True, batch_size=4, lr=lrs), dict(SCHEDULE))
+    again._setup()
+    groups = {g["name"]: g for g in again.optimizer.param_groups}
+    assert groups["quats"]["lr"] == pytest.approx(5e-3 * 2.0)
+    assert groups["quats"]["betas"] == pytest.approx((0.9**4, 0.999**4))
+
+
+def test_step_seeds_and_positions():
+    seeds = {step_seed(seed, step) for seed in range(4) for step in range(1, 2000)}
+    assert len(seeds) == 4 * 1999, "distinct (seed, step) pairs give distinct seeds"
+    assert all(0 <= s < 2**63 for s in seeds)
+    assert step_seed(3, 10) == step_seed(3, 10)
+    assert my_positions(5, 0, 2) == [0, 2, 4] and my_positions(5, 1, 2) == [1, 3] and my_positions(1, 1, 2) == []
+    assert [crossed(b, b + 3, 4) for b in (0, 1, 3, 4)] == [False, True, True, False]
+    assert not crossed(0, 100, 0)
