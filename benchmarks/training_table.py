@@ -130,23 +130,23 @@ def table(rows: dict[str, dict], machine: str, iters: int, data: str, images: st
     return "\n".join(lines) + "\n"
 
 
-def write_docs(path: str, text: str) -> None:
+def write_docs(path: str, text: str, begin: str = BEGIN, end: str = END) -> None:
+    """Replace what lies between the markers ``begin`` and ``end`` in the file ``path`` by ``text``."""
     with open(path) as f:
         content = f.read()
-    if BEGIN not in content or END not in content or content.index(BEGIN) > content.index(END):
-        raise SystemExit(f"training_table: {path} has no {BEGIN} ... {END} block to write the table into")
-    head, rest = content.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
+    if begin not in content or end not in content or content.index(begin) > content.index(end):
+        raise SystemExit(f"{path} has no {begin} ... {end} block to write the table into")
+    head, rest = content.split(begin, 1)
+    _, tail = rest.split(end, 1)
     with open(path, "w") as f:
-        f.write(f"{head}{BEGIN}\n{text}{END}{tail}")
+        f.write(f"{head}{begin}\n{text}{end}{tail}")
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options that every table script of benchmarks/ shares."""
     parser.add_argument("--data", required=True, help="scene folder")
     parser.add_argument("--images", default=None, help="image folder of the scene, e.g. images")
     parser.add_argument("--out", required=True, help="folder of the runs (one subfolder each)")
-    parser.add_argument("--runs", nargs="+", default=DEFAULT_RUNS, help=f"default: {' '.join(DEFAULT_RUNS)}")
     parser.add_argument("--iters", type=int, default=30_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--docs", default=None, help="markdown file with the table's markers")
@@ -154,13 +154,23 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--train-option", dest="train_options", action="append", default=[], help="extra cdcgs train argument"
     )
-    args = parser.parse_args(argv)
+
+
+def check_common_arguments(parser: argparse.ArgumentParser, args) -> None:
     if not os.path.isdir(args.data):
         parser.error(f"--data {args.data!r} is not a folder")
     if args.iters < 1:
         parser.error(f"--iters must be positive, got {args.iters}")
     if args.docs and not os.path.isfile(args.docs):
         parser.error(f"--docs {args.docs!r} is not a file")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_common_arguments(parser)
+    parser.add_argument("--runs", nargs="+", default=DEFAULT_RUNS, help=f"default: {' '.join(DEFAULT_RUNS)}")
+    args = parser.parse_args(argv)
+    check_common_arguments(parser, args)
     from cdcgs.train.presets import PRESETS
 
     unknown = [r for r in args.runs if r not in (*PRESETS, "3dgs-gsplat-rates", "gsplat")]

@@ -161,3 +161,30 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     assert "3dgs: read the finished run" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         training_table.main([*argv, "--runs", "nonsense"])
+
+
+def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_path, capsys):
+    import scaling_table
+
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
+    docs = tmp_path / "dist.md"
+    docs.write_text(f"# Dist\n\n{scaling_table.BEGIN}\nold\n{scaling_table.END}\nafter\n")
+    out = tmp_path / "runs"
+    argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "8", "--docs", str(docs)]
+    argv += ["--device", "cpu", "--warmup", "0", "--configs", "1x1", "2x2"]
+    assert scaling_table.main(argv) == 0
+    one, two = (json.loads((out / f"3dgs-{c}" / "metrics.json").read_text()) for c in ("1x1", "2x2"))
+    assert (one["processes"], one["batch_size"], two["processes"], two["batch_size"]) == (1, 1, 2, 2)
+    assert one["iterations"] == two["iterations"] == 8, "every config sees the same number of views"
+    text = docs.read_text()
+    assert "old" not in text and text.endswith("after\n")
+    rows = [line for line in text.splitlines() if line.startswith("| 3dgs |")]
+    assert rows[0].startswith("| 3dgs | 1 × 1 | 8 |") and "| 1.00× |" in rows[0]
+    assert rows[1].startswith("| 3dgs | 2 × 2 | 4 |") and f"{two['num_gaussians']:,}" in rows[1]
+    ratio = (8 / two["train_seconds"]) / (8 / one["train_seconds"])
+    assert f"| {ratio:.2f}× |" in rows[1]
+    capsys.readouterr()
+    assert scaling_table.main(argv) == 0 and "read the finished run" in capsys.readouterr().out
+    for bad in (["--configs", "2x1"], ["--configs", "two"], ["--strategies", "nonsense"]):
+        with pytest.raises(SystemExit):
+            scaling_table.main([*argv, *bad])

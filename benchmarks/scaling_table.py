@@ -1,0 +1,181 @@
+"""Trainings on 1, 2, 4 ... GPUs with batches of views, one after another, and their scaling table.
+
+    python benchmarks/scaling_table.py --data ../shared/data/bonsai --images images --out runs \
+        [--strategies 3dgs cdc] [--configs 1x1 1x2 2x2 4x4] [--iters 30000] [--docs docs/distributed.md]
+
+A config ``GxB`` is G processes (one per GPU, NCCL; ``torchrun --standalone --nproc_per_node=G``
+for G > 1) training with ``--batch-size B``; ``--iters`` counts views seen, so every run sees the
+same number of images. Each run is its own launch, started after the one before it ended, so that
+none shares a GPU or the host, and is preceded by a ``--warmup``-iteration launch of the same
+command into a scratch folder (Warp compiles its kernels there, not in the timed run). A config
+that needs more GPUs than the machine has is skipped, and said so.
+
+The table (steps, training time, images per second and its ratio to the strategy's first config,
+test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, the largest peak GPU memory of a process, the
+all-reduce's share of a step), with the machine, date and commit, is printed, written to
+``--out``/scaling.md and, with ``--docs``, put into that file between ``<!-- scaling-table:begin -->``
+and ``<!-- scaling-table:end -->``. Runs whose folder already holds a finished run are read, not
+trained again (``--retrain`` trains them anew). ``--device cpu`` runs the same on the CPU (gloo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, HERE)
+
+from training_table import _number, add_common_arguments, check_common_arguments, commit, write_docs
+
+BEGIN, END = "<!-- scaling-table:begin -->", "<!-- scaling-table:end -->"
+DEFAULT_CONFIGS = ["1x1", "1x2", "2x2", "4x4"]
+
+
+def parse_config(text: str) -> tuple[int, int]:
+    """``GxB`` -> (processes, batch size); ValueError naming the text when it is not one."""
+    match = re.fullmatch(r"(\d+)x(\d+)", text)
+    if not match or int(match[1]) < 1 or int(match[2]) < int(match[1]):
+        raise ValueError(f"{text!r} is not GxB with 1 <= G <= B (G processes, batch B), e.g. 2x2")
+    return int(match[1]), int(match[2])
+
+
+def command(strategy: str, config: str, args, out: str, iters: int) -> list[str]:
+    """The command line of one run."""
+    processes, batch = parse_config(config)
+    train = ["train", "--data", args.data, "--out", out, "--iters", str(iters), "--seed", str(args.seed)]
+    if args.images:
+        train += ["--images", args.images]
+    train += ["--strategy", strategy, "--batch-size", str(batch), "--device", args.device]
+    train += ["--no-progress", "--checkpoint-every", "0", "--overwrite", *args.train_options]
+    if processes == 1:
+        return [sys.executable, "-m", "cdcgs", *train]
+    launch = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}"]
+    return [*launch, "-m", "cdcgs", *train]
+
+
+def available_gpus() -> int:
+    try:
+        import torch
+
+        return torch.cuda.device_count() if torch.cuda.is_available() else 0
+    except ImportError:
+        return 0
+
+
+def train(strategy: str, config: str, args) -> dict:
+    """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}."""
+    processes, _ = parse_config(config)
+    folder = os.path.join(args.out, f"{strategy}-{config}")
+    metrics_path = os.path.join(folder, "metrics.json")
+    if os.path.isfile(metrics_path) and not args.retrain:
+        print(f"{strategy} {config}: read the finished run in {folder}", flush=True)
+        with open(metrics_path) as f:
+            return json.load(f)
+    if args.device != "cpu" and processes > available_gpus():
+        why = f"needs {processes} GPUs, this machine has {available_gpus()}"
+        print(f"{strategy} {config}: skipped ({why})", flush=True)
+        return {"skipped": why}
+    scratch = os.path.join(args.out, f".warm-{strategy}-{config}")
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
+    steps = [(args.warmup, scratch)] if args.warmup > 0 else []
+    for iters, out in [*steps, (args.iters, folder)]:
+        line = command(strategy, config, args, out, iters)
+        print(f"{strategy} {config}: {' '.join(line[1:])}", flush=True)
+        done = subprocess.run(line, cwd=ROOT, env=environment)
+        if done.returncode != 0:
+            raise SystemExit(
+                f"scaling_table: {strategy} {config} failed (exit status {done.returncode}); see its output above"
+            )
+    shutil.rmtree(scratch, ignore_errors=True)
+    with open(metrics_path) as f:
+        return json.load(f)
+
+
+def table(rows: dict[tuple[str, str], dict], machine: str, args) -> str:
+    """The markdown table of the runs, with what they ran on."""
+    day = datetime.date.today().isoformat()
+    scene = f"{os.path.basename(os.path.normpath(args.data))} `{args.images or 'images'}`"
+    lines = [
+        f"{scene}, {args.iters:,} views seen per run, each run alone on {machine}, one after another, {day}, "
+        f"commit {commit()} (`python benchmarks/scaling_table.py`):",
+        "",
+        "| strategy | GPUs × batch | steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG | LPIPS-Alex "
+        "| Gaussians | peak GB / GPU | all-reduce |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    first: dict[str, float] = {}
+    for (strategy, config), m in rows.items():
+        processes, batch = parse_config(config)
+        label = f"{processes} × {batch}"
+        if "skipped" in m:
+            lines.append(f"| {strategy} | {label} | skipped: {m['skipped']} |" + " |" * 10)
+            continue
+        test = m.get("test", {})
+        rate = m["iterations"] / m["train_seconds"]
+        first.setdefault(strategy, rate)
+        peaks = [p for p in m.get("peak_gpu_memory_gb_per_process") or [m.get("peak_gpu_memory_gb")] if p is not None]
+        comm = m.get("communication") or {}
+        share = f"{comm['share'] * 100:.0f}% ({comm['all_reduce_ms_per_step']:.2f} ms)" if "share" in comm else "—"
+        lines.append(
+            f"| {strategy} | {label} | {-(-m['iterations'] // batch):,} | {m['train_seconds']:.1f} s | {rate:.1f} "
+            f"| {rate / first[strategy]:.2f}× | {_number(test.get('psnr'), 2)} | {_number(test.get('ssim'), 4)} "
+            f"| {_number(test.get('lpips_vgg'), 4)} | {_number(test.get('lpips_alex'), 4)} | {m['num_gaussians']:,} "
+            f"| {_number(max(peaks), 2) if peaks else '—'} | {share} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_common_arguments(parser)
+    parser.add_argument("--strategies", nargs="+", default=["3dgs", "cdc"], help="default: 3dgs cdc")
+    parser.add_argument(
+        "--configs", nargs="+", default=DEFAULT_CONFIGS, help=f"GxB each; default: {' '.join(DEFAULT_CONFIGS)}"
+    )
+    parser.add_argument("--warmup", type=int, default=20, help="iterations of the untimed launch before each run")
+    parser.add_argument("--device", default="auto", help="auto (a GPU per process) or cpu")
+    args = parser.parse_args(argv)
+    check_common_arguments(parser, args)
+    if args.warmup < 0:
+        parser.error(f"--warmup must not be negative, got {args.warmup}")
+    if args.device not in ("auto", "cpu"):
+        parser.error(f"--device must be auto or cpu, got {args.device!r}")
+    if args.docs and not os.path.isfile(args.docs):
+        parser.error(f"--docs {args.docs!r} is not a file")
+    for config in args.configs:
+        try:
+            parse_config(config)
+        except ValueError as err:
+            parser.error(f"--configs: {err}")
+    from cdcgs.train.presets import PRESETS
+
+    unknown = [s for s in args.strategies if s not in PRESETS]
+    if unknown:
+        parser.error(f"--strategies: unknown {', '.join(unknown)} (one of {', '.join(PRESETS)})")
+    os.makedirs(args.out, exist_ok=True)
+    rows = {(s, c): train(s, c, args) for s in args.strategies for c in args.configs}
+    devices = {m["device"] for m in rows.values() if "device" in m}
+    gpus = available_gpus() if args.device != "cpu" else 0
+    machine = " / ".join(sorted(devices)) or "unknown"
+    if gpus > 1:
+        machine = f"a machine with {gpus} × {machine}"
+    text = table(rows, machine, args)
+    print("\n" + text)
+    with open(os.path.join(args.out, "scaling.md"), "w") as f:
+        f.write(text)
+    if args.docs:
+        write_docs(args.docs, text, BEGIN, END)
+        print(f"written into {args.docs}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
