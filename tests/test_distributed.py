@@ -9,7 +9,7 @@ import sys
 
 import pytest
 import torch
-from dist_tasks import SCHEDULE, first_step_gradients, run_ranks, task_config
+from dist_tasks import SCHEDULE, first_step_gradients, run_here, run_ranks, task_config
 from helpers import hand_model
 
 from cdcgs.datasets.procedural import make_procedural_scene
@@ -50,7 +50,7 @@ def runs_3dgs(small_scene, tmp_path_factory):
     """The same 12-iteration run (batch 2, densification at 4 and 8, a reset at 8) on 2 processes and on 1."""
     tmp = tmp_path_factory.mktemp("runs_3dgs")
     two = ok(run_ranks("train", 2, tmp, scene=small_scene, out=tmp / "two"))
-    one = ok(run_ranks("train", 1, tmp, scene=small_scene, out=tmp / "one"))[0]
+    one = ok([run_here("train", scene=small_scene, out=tmp / "one")])[0]
     return two, one, tmp
 
 
@@ -116,9 +116,7 @@ def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, opt
     r0, r1 = ok(
         run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", strategy=strategy, options=options)
     )
-    one = ok(
-        run_ranks("train", 1, tmp_path, scene=small_scene, out=tmp_path / "one", strategy=strategy, options=options)
-    )[0]
+    one = ok([run_here("train", scene=small_scene, out=tmp_path / "one", strategy=strategy, options=options)])[0]
     assert r0["checksums"] == r1["checksums"]
     assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] and r0["events"]
     assert_params_close(r0["params"], one["params"], rtol=1e-4, atol=1e-5)
@@ -131,7 +129,7 @@ def test_a_stopped_run_on_two_processes_resumes_in_one(small_scene, runs_3dgs):
     # Rank 1 alone got the signal, after the step to iteration 6; its flag travels with the next
     # step's all-reduce, and both stop at the log point after it (iteration 8).
     assert [s["step"] for s in stopped] == [8, 8] and all("stopped" in s for s in stopped)
-    resumed = ok(run_ranks("train", 1, tmp, scene=small_scene, out=out, resume=True))[0]
+    resumed = ok([run_here("train", scene=small_scene, out=out, resume=True)])[0]
     assert resumed["checksums"][0][0] == 10
     assert_params_close(resumed["params"], whole["params"])
 
