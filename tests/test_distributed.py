@@ -13,9 +13,10 @@ from dist_tasks import SCHEDULE, first_step_gradients, run_here, run_ranks, task
 from helpers import hand_model
 
 from cdcgs.datasets.procedural import make_procedural_scene
+from cdcgs.errors import OptionError
 from cdcgs.train import ops
 from cdcgs.train.config import LearningRates, TrainConfig, batch_rule
-from cdcgs.train.distributed import my_positions, step_seed
+from cdcgs.train.distributed import choose_backend, my_positions, step_seed
 from cdcgs.train.trainer import Trainer, crossed
 
 pytestmark = pytest.mark.skipif(
@@ -264,3 +265,18 @@ def test_step_seeds_and_positions():
     assert my_positions(5, 0, 2) == [0, 2, 4] and my_positions(5, 1, 2) == [1, 3] and my_positions(1, 1, 2) == []
     assert [crossed(b, b + 3, 4) for b in (0, 1, 3, 4)] == [False, True, True, False]
     assert not crossed(0, 100, 0)
+
+
+def test_the_backend_is_nccl_only_where_every_process_has_a_gpu_of_its_own():
+    cuda0, cuda, cpu = torch.device("cuda:0"), torch.device("cuda"), torch.device("cpu")
+    assert choose_backend("auto", cuda, 2, 2, spread=True, nccl=True) == "nccl"
+    assert choose_backend("auto", cuda0, 2, 2, spread=False, nccl=True) == "gloo", "--device cuda:0 for both"
+    assert choose_backend("auto", cuda, 4, 2, spread=True, nccl=True) == "gloo", "more processes than GPUs"
+    assert choose_backend("auto", cuda, 2, 2, spread=True, nccl=False) == "gloo"
+    assert choose_backend("auto", cpu, 2, 2, spread=True, nccl=True) == "gloo"
+    assert choose_backend("auto", cuda0, 1, 1, spread=False, nccl=True) == "nccl", "one process per machine"
+    assert choose_backend("gloo", cuda, 2, 2, spread=True, nccl=True) == "gloo"
+    with pytest.raises(
+        OptionError, match=r"nccl needs a GPU per process: 2 processes .* 2 GPU\(s\), device cuda:0 for all"
+    ):
+        choose_backend("nccl", cuda0, 2, 2, spread=False, nccl=True)

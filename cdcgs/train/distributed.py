@@ -31,6 +31,7 @@ __all__ = [
     "RankFailed",
     "Ranks",
     "StatisticsSync",
+    "choose_backend",
     "my_positions",
     "rank_device",
     "step_seed",
@@ -99,6 +100,22 @@ def rank_device(option: str, local_rank: int, local_world: int) -> str:
     return option
 
 
+def choose_backend(option: str, device: torch.device, local_world: int, gpus: int, spread: bool, nccl: bool) -> str:
+    """The backend for ``--dist-backend option``: ``auto`` is NCCL when every one of the
+    ``local_world`` processes of this machine has a GPU of its own (CUDA ``device``, enough of the
+    machine's ``gpus``, and the devices ``spread`` over them, not one named for all) and NCCL is
+    ``nccl``-available, gloo otherwise; ``nccl`` where that does not hold is refused."""
+    own_gpus = device.type == "cuda" and local_world <= gpus and (spread or local_world == 1)
+    if option == "auto":
+        return "nccl" if own_gpus and nccl else "gloo"
+    if option == "nccl" and not own_gpus:
+        raise OptionError(
+            f"--dist-backend nccl needs a GPU per process: {local_world} processes on this machine, {gpus} GPU(s), "
+            f"device {device}{'' if spread else ' for all of them'} (use gloo to share a GPU or to train on the CPU)"
+        )
+    return option
+
+
 class Ranks:
     """The processes of a run: ``rank`` of ``world``, and the collectives the trainer uses. One
     process (``Ranks.single()``) is the world of one, where every collective is the identity."""
@@ -112,11 +129,16 @@ class Ranks:
         return cls()
 
     @classmethod
-    def from_environment(cls, device: torch.device, backend: str = "auto", timeout: float = 600.0) -> Ranks:
+    def from_environment(
+        cls, device: torch.device, backend: str = "auto", timeout: float = 600.0, spread: bool = True
+    ) -> Ranks:
         """The ranks of a launch by torchrun (or anything that sets its variables); one process
         when ``WORLD_SIZE`` is unset or 1. Joins the default process group (or uses the one the
         caller initialised), with ``backend`` (``auto``: NCCL on CUDA when every rank of this
-        machine has a GPU of its own, gloo otherwise) and ``timeout`` seconds on every collective."""
+        machine has a GPU of its own, gloo otherwise) and ``timeout`` seconds on every collective.
+        ``spread``: the ranks' devices came from :func:`rank_device` of ``auto`` or ``cuda`` (one
+        GPU each where there are enough); False when the command named one device for all (the
+        decision must be the same on every rank, so it rests on the option, not on ``device``)."""
         if backend not in BACKENDS:
             raise OptionError(f"--dist-backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         import torch.distributed as dist
@@ -128,15 +150,8 @@ class Ranks:
             return cls.single()
         if not dist.is_available():
             raise OptionError("this torch build has no torch.distributed: it cannot train on several processes")
-        own_gpus = device.type == "cuda" and local_world <= torch.cuda.device_count()
-        if backend == "auto":
-            backend = "nccl" if own_gpus and dist.is_nccl_available() else "gloo"
-        if backend == "nccl" and not own_gpus:
-            raise OptionError(
-                f"--dist-backend nccl needs a GPU per rank: {local_world} ranks on this machine, "
-                f"{torch.cuda.device_count() if torch.cuda.is_available() else 0} GPU(s), device {device} "
-                "(use gloo to share a GPU or to train on the CPU)"
-            )
+        gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        backend = choose_backend(backend, device, local_world, gpus, spread, dist.is_nccl_available())
         for name in ("MASTER_ADDR", "MASTER_PORT"):
             if not os.environ.get(name):
                 raise OptionError(f"WORLD_SIZE={world} but {name} is not set: launch with torchrun")

@@ -476,7 +476,9 @@ class Trainer:
         self.step_events = []
         for iteration in range(first, last + 1):
             if self.strategy.refines_at(iteration):
-                self.check_numbers()
+                # On several processes the parameters too: a refinement may render views (CDC's Γ
+                # pass) that meet NaN on one process only, which must not stop it alone.
+                self.check_numbers(params=self.ranks.distributed)
                 log = self.strategy.refine(self._context(iteration), self.strategy_state)
                 if log:
                     self.step_events.append((iteration, log))
@@ -602,7 +604,9 @@ class Trainer:
         """
         config = self.config
         if self._given_ranks is None:
-            self.ranks = Ranks.from_environment(self.device, config.dist_backend, config.dist_timeout)
+            self.ranks = Ranks.from_environment(
+                self.device, config.dist_backend, config.dist_timeout, spread=config.device in ("auto", "cuda")
+            )
         finished = False
         try:
             if self.ranks.world > config.batch_size:
@@ -676,8 +680,12 @@ class Trainer:
         except Exception as err:  # every process learns of it and stops
             error = err
         self.ranks.all_ok(error, "set-up")
-        if self.ranks.is_main:
-            outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
+        try:  # agreed on too: a failed write stops every process with its cause, not by a timeout
+            if self.ranks.is_main:
+                outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
+        except Exception as err:
+            error = err
+        self.ranks.all_ok(error, f"writing {outputs.CONFIG}")
         config = self.config
         from tqdm import tqdm
 
