@@ -51,6 +51,8 @@ def make_scene(n, device="cpu"):
         ("void at::native::vectorized_elementwise_kernel<4, at::native::FillFunctor<float>>", "other (torch)"),
         ("ssim_l1_forward_kernel_5e1f_cuda_kernel_forward", "loss (L1 + D-SSIM)"),
         ("ssim_l1_backward_kernel_5e1f_cuda_kernel_forward", "loss (L1 + D-SSIM)"),
+        ("ssim_l1_forward_rows_kernel_b205_cuda_kernel_forward", "loss (L1 + D-SSIM)"),
+        ("ssim_l1_backward_rows_kernel_7a53_cuda_kernel_forward", "loss (L1 + D-SSIM)"),
     ],
 )
 def test_kernels_sort_into_stages(kernel, stage):

@@ -3,8 +3,9 @@
 What a ``wp.launch`` user needs: the camera (``make_camera``), the projection and SH colour kernels
 and their adjoints, ``bin_gaussians`` (the tiles' depth-sorted lists), the blend kernels (launch
 with ``dim=tiles_x * tiles_y * BLOCK_SIZE``, ``block_dim=BLOCK_SIZE``), the CDC-GS complexity pass,
-the exact KNN (``knn_search``), the training loss, L1 + D-SSIM, fused (``ssim_l1_*``), and Adam on
-selected rows (``selective_adam_kernel``). ``examples/warp_launch.py`` renders an image with them.
+the exact KNN (``knn_search``), the training loss, L1 + D-SSIM, fused (``ssim_l1_*``: two
+separable passes forward, two backward), and Adam on selected rows (``selective_adam_kernel``).
+``examples/warp_launch.py`` renders an image with them.
 
 The binning kernels that ``bin_gaussians`` runs stay importable from ``cdcgs.kernels.binning`` for
 callers that manage their own buffers; the submodules (``projection``, ``binning``, ``blend``,
@@ -16,7 +17,13 @@ from .adam import selective_adam_kernel
 from .binning import TileBins, bin_gaussians
 from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel, complexity_kernel
 from .knn import knn_search
-from .loss import ssim_l1_backward_kernel, ssim_l1_forward_kernel, ssim_l1_launch_size
+from .loss import (
+    ssim_l1_backward_kernel,
+    ssim_l1_backward_rows_kernel,
+    ssim_l1_forward_kernel,
+    ssim_l1_forward_rows_kernel,
+    ssim_l1_launch_size,
+)
 from .projection import (
     Camera,
     make_camera,
@@ -44,6 +51,8 @@ __all__ = [
     "sh_to_color_grouped_backward_kernel",
     "sh_to_color_kernel",
     "ssim_l1_backward_kernel",
+    "ssim_l1_backward_rows_kernel",
     "ssim_l1_forward_kernel",
+    "ssim_l1_forward_rows_kernel",
     "ssim_l1_launch_size",
 ]

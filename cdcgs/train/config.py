@@ -159,7 +159,7 @@ class TrainConfig:
     antialiased: bool = option(False, "Mip-Splatting opacity compensation in the rasterizer")
     fused_loss: bool = option(
         True,
-        "the loss as one Warp kernel forward and one backward (off: kornia's SSIM and torch's L1, the same loss in about 60 torch kernels)",
+        "the loss as Warp kernels, two passes forward and two backward (off: kornia's SSIM and torch's L1, the same loss in about 60 torch kernels)",
     )
     optimizer: str = option(
         "adam",

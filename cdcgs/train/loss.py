@@ -2,9 +2,9 @@
 
 Two implementations of the 3DGS loss (1 - w) L1 + w (1 - SSIM): :func:`photometric_loss`, kornia's
 SSIM and torch's L1 (the reference, about sixty torch kernels forward and backward), and
-:func:`fused_photometric_loss`, the same loss as one Warp kernel forward and one backward
-(cdcgs.kernels.loss), which also returns the mean squared error for the PSNR. The training uses the
-fused one unless ``--no-fused-loss``.
+:func:`fused_photometric_loss`, the same loss as two Warp kernels forward and two backward
+(cdcgs.kernels.loss: separable passes over the window), which also returns the mean squared error
+for the PSNR. The training uses the fused one unless ``--no-fused-loss``.
 """
 
 import kornia
@@ -12,7 +12,16 @@ import torch
 import warp as wp
 
 from .._interop import warp_scope, wp_arg
-from ..kernels.loss import SSIM_RADIUS, ssim_l1_backward_kernel, ssim_l1_forward_kernel, ssim_l1_launch_size
+from ..kernels.loss import (
+    ROW_GATHERS,
+    ROW_MOMENTS,
+    SSIM_RADIUS,
+    ssim_l1_backward_kernel,
+    ssim_l1_backward_rows_kernel,
+    ssim_l1_forward_kernel,
+    ssim_l1_forward_rows_kernel,
+    ssim_l1_launch_size,
+)
 
 __all__ = ["fused_photometric_loss", "mse_to_psnr", "photometric_loss", "psnr", "ssim"]
 
@@ -43,8 +52,13 @@ _TARGET_TYPES = {torch.uint8: wp.uint8, torch.float32: wp.float32}
 
 
 def _kernels(target_dtype):
+    """The overloads for this target type: forward rows, forward, backward (the backward's rows
+    pass reads no target)."""
     spec = {"target": wp.array3d(dtype=target_dtype)}
-    return wp.overload(ssim_l1_forward_kernel, spec), wp.overload(ssim_l1_backward_kernel, spec)
+    return tuple(
+        wp.overload(kernel, spec)
+        for kernel in (ssim_l1_forward_rows_kernel, ssim_l1_forward_kernel, ssim_l1_backward_kernel)
+    )
 
 
 class _FusedLoss(torch.autograd.Function):
@@ -52,16 +66,24 @@ class _FusedLoss(torch.autograd.Function):
     def forward(ctx, image, target, ssim_weight: float):
         height, width = image.shape[:2]
         target_type = _TARGET_TYPES[target.dtype]
-        forward_kernel, _ = _kernels(target_type)
-        # The three derivative maps of SSIM the backward pass gathers (none for a pure L1).
-        maps = image.new_empty(3, height, width, 3) if ssim_weight else image.new_empty(3, 1, 1, 3)
+        rows_kernel, forward_kernel, _ = _kernels(target_type)
+        # The horizontal pass's moments and the three derivative maps of SSIM that the backward
+        # gathers; a pure L1 reads neither, and its arguments are one pixel each.
+        size = (height, width) if ssim_weight else (1, 1)
+        row_moments = image.new_empty(ROW_MOMENTS, *size, 3)
+        maps = image.new_empty(3, *size, 3)
         sums = image.new_zeros(2)  # loss, mean squared error of the clamped image
         inv_count = 1.0 / (3 * height * width)
+        image_arg, target_arg = wp_arg(image, wp.vec3), wp_arg(target, target_type)
         with warp_scope(image.device):
+            if ssim_weight:
+                wp.launch(
+                    rows_kernel, height * width, inputs=[image_arg, target_arg], outputs=[wp_arg(row_moments, wp.vec3)]
+                )
             wp.launch(
                 forward_kernel,
                 ssim_l1_launch_size(height, width),
-                inputs=[wp_arg(image, wp.vec3), wp_arg(target, target_type), float(ssim_weight), inv_count],
+                inputs=[image_arg, target_arg, float(ssim_weight), inv_count, wp_arg(row_moments, wp.vec3)],
                 outputs=[wp_arg(sums, wp.float32), *(wp_arg(m, wp.vec3) for m in maps)],
             )
         ctx.save_for_backward(image, target, maps)
@@ -75,10 +97,20 @@ class _FusedLoss(torch.autograd.Function):
         image, target, maps = ctx.saved_tensors
         height, width = image.shape[:2]
         target_type = _TARGET_TYPES[target.dtype]
-        _, backward_kernel = _kernels(target_type)
+        _, _, backward_kernel = _kernels(target_type)
+        # A new scratch array rather than keeping the forward's row_moments ([5, H, W]) allocated
+        # until here; torch's caching allocator makes this one cheap.
+        row_gathers = image.new_empty(ROW_GATHERS, *maps.shape[1:])
         grad_image = torch.empty_like(image)
         grad_loss = grad_loss.reshape(1).float().contiguous()  # read on the device: no host synchronisation
         with warp_scope(image.device):
+            if ctx.ssim_weight:
+                wp.launch(
+                    ssim_l1_backward_rows_kernel,
+                    height * width,
+                    inputs=[wp_arg(m, wp.vec3) for m in maps],
+                    outputs=[wp_arg(row_gathers, wp.vec3)],
+                )
             wp.launch(
                 backward_kernel,
                 height * width,
@@ -88,7 +120,7 @@ class _FusedLoss(torch.autograd.Function):
                     ctx.ssim_weight,
                     1.0 / (3 * height * width),
                     wp_arg(grad_loss, wp.float32),
-                    *(wp_arg(m, wp.vec3) for m in maps),
+                    wp_arg(row_gathers, wp.vec3),
                 ],
                 outputs=[wp_arg(grad_image, wp.vec3)],
             )
@@ -98,8 +130,8 @@ class _FusedLoss(torch.autograd.Function):
 def fused_photometric_loss(
     image: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(1 - w) L1 + w (1 - SSIM) as :func:`photometric_loss` computes it, in one Warp kernel
-    forward and one backward, and the mean squared error of ``image.clamp(0, 1)`` against the
+    """(1 - w) L1 + w (1 - SSIM) as :func:`photometric_loss` computes it, in two Warp kernels
+    forward and two backward, and the mean squared error of ``image.clamp(0, 1)`` against the
     target (for :func:`mse_to_psnr`; not differentiable).
 
     Args:
