@@ -15,7 +15,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from cdcgs.errors import InputError
 from cdcgs.lpips import LPIPS, WeightsUnavailable, load_lpips
 from cdcgs.lpips import weights as lpips_weights
-from cdcgs.lpips.network import NETS, SCALE, SHIFT
+from cdcgs.lpips.network import NETS, SCALE, SHIFT, full_float32
 
 
 def converted(net: str) -> LPIPS:
@@ -143,6 +143,24 @@ def test_identical_images_score_zero_and_noise_raises_the_score(net):
 def test_bad_image_pairs_are_refused(a, b, message):
     with pytest.raises(ValueError, match=message):
         LPIPS("alex")(a, b)
+
+
+@pytest.mark.parametrize("before", [False, True])
+def test_lpips_runs_in_full_float32_on_deterministic_algorithms_and_restores_the_flags(before):
+    cudnn, matmul = torch.backends.cudnn, torch.backends.cuda.matmul
+
+    def flags():  # TF32 in convolutions, in matrix products; deterministic; benchmark
+        return cudnn.allow_tf32, matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark
+
+    saved = flags()
+    try:
+        cudnn.allow_tf32 = matmul.allow_tf32 = cudnn.benchmark = before
+        cudnn.deterministic = not before
+        with full_float32():
+            assert flags() == (False, False, True, False)
+        assert flags() == (before, before, not before, before)
+    finally:
+        cudnn.allow_tf32, matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark = saved
 
 
 def test_smallest_images_each_net_takes():

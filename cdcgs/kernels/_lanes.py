@@ -20,6 +20,7 @@ __all__ = [
     "BATCH_STORE",
     "GROUP_SIZE",
     "WARP_SIZE",
+    "atomic_max_nonnegative",
     "block_count",
     "block_max_int",
     "block_sync",
@@ -91,6 +92,29 @@ def lane_any(flag: int) -> int: ...
 """
 )
 def lane_leads() -> int: ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    atomicMax(reinterpret_cast<int*>(address(dest, index)), __float_as_int(value));
+#else
+    float* slot = address(dest, index);
+    if (value > *slot) *slot = value;
+#endif
+"""
+)
+def atomic_max_nonnegative(dest: wp.array(dtype=float), index: int, value: float):
+    """``dest[index] = max(dest[index], value)`` atomically, for ``value`` and ``dest[index]``
+    both non-negative (+0.0 included; not NaN).
+
+    Warp's ``atomic_max`` on float32 is a compare-and-swap loop that starts by waiting for a load
+    of the slot, so a warp that calls it once per Gaussian of a tile list waits for memory each
+    time. Non-negative floats order as their bit patterns do as signed integers, so CUDA's integer
+    ``atomicMax`` on the bits gives the same result, and, its old value unused, is a reduction that
+    the warp does not wait for. On the CPU a thread is alone: a plain compare and store.
+    """
+    ...
 
 
 @wp.func

@@ -19,6 +19,7 @@ from ._lanes import (
     BATCH_FIELDS,
     BATCH_LOAD,
     BATCH_STORE,
+    atomic_max_nonnegative,
     block_count,
     block_max_int,
     block_sync,
@@ -614,7 +615,7 @@ def complexity_kernel(
                             wp.atomic_add(sum_out, g, total)
                             wp.atomic_add(count_out, g, int(hits))
                     if lane_leads() != 0:
-                        wp.atomic_max(max_out, g, top)
+                        atomic_max_nonnegative(max_out, g, top)  # top >= 0, max_out zeroed by the caller
         if staged != 0:
             block_sync()
         elif batch + count > warp_last:

@@ -52,13 +52,21 @@ NETS = {"vgg": VGG_LAYERS, "alex": ALEX_LAYERS}
 def full_float32():
     """Convolutions and matrix products in full float32, not TF32 (which cuDNN uses by default on
     Ampere and newer GPUs, and which moves LPIPS scores by up to 1e-4): the scores are then the
-    same on every GPU and on the CPU, to about 1e-6."""
-    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    same on every GPU and on the CPU, to about 1e-6.
+
+    cuDNN's convolutions are also restricted to its deterministic algorithms, so that a score
+    does not depend on the run. Without that restriction PyTorch takes the first algorithm of
+    cuDNN's heuristics whose workspace it can allocate, and on a large GPU that workspace may be
+    tens of GB (pytorch/pytorch#49207); an evaluation's peak memory was 37 GB against 2.8 GB for
+    the training (bonsai, H100), which the deterministic algorithms are meant to avoid."""
+    cudnn = torch.backends.cudnn
+    saved = cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark
+    cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    cudnn.deterministic, cudnn.benchmark = True, False
     try:
         yield
     finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+        cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark = saved
 
 
 class LPIPS(nn.Module):
