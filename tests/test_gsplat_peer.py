@@ -4,6 +4,7 @@ and its loop end to end on the CPU with a stand-in for gsplat's rasterization an
 import dataclasses
 import importlib.util
 import json
+import math
 import os
 import subprocess
 import sys
@@ -23,6 +24,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(ROOT, "benchmarks", "peers", "gsplat_train.py")
 spec = importlib.util.spec_from_file_location("gsplat_train", SCRIPT)
 peer = importlib.util.module_from_spec(spec)
+sys.modules["gsplat_train"] = peer  # its dataclasses look their module up there
 spec.loader.exec_module(peer)
 
 
@@ -31,7 +33,17 @@ def fake_gsplat_module() -> types.ModuleType:
     module.__version__ = "1.5.3"
     module.rasterization = fake_rasterization
     module.DefaultStrategy = RecordingStrategy
+    module.MCMCStrategy = RecordingMCMCStrategy
     return module
+
+
+def stand_in_api(rasterization=None) -> types.SimpleNamespace:
+    return types.SimpleNamespace(
+        rasterization=rasterization or fake_rasterization,
+        DefaultStrategy=RecordingStrategy,
+        MCMCStrategy=RecordingMCMCStrategy,
+        version="1.5.3",
+    )
 
 
 def test_refuses_without_gsplat(tmp_path, monkeypatch, capsys):
@@ -91,6 +103,38 @@ def test_rates_are_gsplats_and_equal_ours():
     assert pytest.approx(ours.means_final / ours.means_init) == peer.MEANS_LR_END
 
 
+def test_cap_max_is_mcmcs_and_positive(tmp_path, capsys):
+    base = ["--data", str(tmp_path), "--out", str(tmp_path / "out")]
+    assert peer.parse_args(base).strategy == "default" and peer.parse_args(base).cap_max is None
+    assert peer.parse_args([*base, "--strategy", "mcmc"]).cap_max == 1_000_000  # MCMCStrategy's default
+    assert peer.parse_args([*base, "--strategy", "mcmc", "--cap-max", "901363"]).cap_max == 901_363
+    refused = {
+        ("--strategy", "mcmc", "--cap-max", "0"): "--cap-max must be positive, got 0",
+        ("--strategy", "mcmc", "--cap-max", "-5"): "--cap-max must be positive, got -5",
+        ("--cap-max", "901363"): "--cap-max is MCMCStrategy's cap_max: it needs --strategy mcmc",
+        ("--strategy", "default", "--cap-max", "901363"): "it needs --strategy mcmc (got --strategy default)",
+        ("--strategy", "mcmc-cdc"): "argument --strategy: invalid choice: 'mcmc-cdc'",
+    }
+    for extra, message in refused.items():
+        with pytest.raises(SystemExit) as exit_info:
+            peer.parse_args([*base, *extra])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err, extra
+
+
+def test_regularization_by_hand():
+    opacities = torch.tensor([-2.0, 0.0, 3.0], requires_grad=True)
+    scales = torch.tensor([[0.1, 0.2, 0.3], [1.0, 2.0, 0.5], [0.01, 0.02, 0.04]]).log().requires_grad_()
+    params = {"opacities": opacities, "scales": scales}
+    assert peer.regularization(params, peer.SETTINGS["default"]) is None
+    value = peer.regularization(params, peer.SETTINGS["mcmc"])
+    sigmoids = [1 / (1 + math.exp(2.0)), 0.5, 1 / (1 + math.exp(-3.0))]
+    sizes = [0.1, 0.2, 0.3, 1.0, 2.0, 0.5, 0.01, 0.02, 0.04]
+    assert value.item() == pytest.approx(0.01 * sum(sigmoids) / 3 + 0.01 * sum(sizes) / 9, rel=1e-6)
+    value.backward()  # d/dx sigmoid = s (1 - s); d/dx exp = exp
+    torch.testing.assert_close(opacities.grad, torch.tensor([0.01 * o * (1 - o) / 3 for o in sigmoids]))
+    torch.testing.assert_close(scales.grad, torch.tensor(sizes).reshape(3, 3) * 0.01 / 9)
+
+
 def test_sh_degree_schedule():
     assert [peer.sh_degree_at(s) for s in (0, 999, 1000, 1999, 2000, 3000, 29_999)] == [0, 0, 1, 1, 2, 3, 3]
 
@@ -110,6 +154,8 @@ def test_view_order_is_our_trainers():
 RENDERS: list = []  # the SH degree of each render
 CALLS: list = []  # the strategy hooks' calls, in order
 START: dict = {}  # the parameters and rates check_sanity saw
+GRADIENTS: list = []  # with HOOK_GRADIENTS: each step's parameters and the opacity and scale gradients
+HOOK_GRADIENTS = {"on": False}
 
 
 def fake_rasterization(
@@ -153,18 +199,22 @@ def fake_rasterization(
     return image.reshape(1, height, width, 3), alpha.reshape(1, height, width, 1), info
 
 
+def record_start(params, optimizers):
+    assert set(params) == set(optimizers) == {"means", "scales", "quats", "opacities", "sh0", "shN"}
+    for name, optimizer in optimizers.items():
+        (group,) = optimizer.param_groups
+        assert group["params"] == [params[name]] and group["eps"] == 1e-15 and group["betas"] == (0.9, 0.999)
+    START.update({name: p.detach().clone() for name, p in params.items()})
+    START.update({f"lr {name}": o.param_groups[0]["lr"] for name, o in optimizers.items()})
+
+
 @dataclasses.dataclass
 class RecordingStrategy:
     absgrad: bool = False
     refine_every: int = 100
 
     def check_sanity(self, params, optimizers):
-        assert set(params) == set(optimizers) == {"means", "scales", "quats", "opacities", "sh0", "shN"}
-        for name, optimizer in optimizers.items():
-            (group,) = optimizer.param_groups
-            assert group["params"] == [params[name]] and group["eps"] == 1e-15 and group["betas"] == (0.9, 0.999)
-        START.update({name: p.detach().clone() for name, p in params.items()})
-        START.update({f"lr {name}": o.param_groups[0]["lr"] for name, o in optimizers.items()})
+        record_start(params, optimizers)
 
     def initialize_state(self, scene_scale: float = 1.0):
         return {"scene_scale": scene_scale}
@@ -179,6 +229,43 @@ class RecordingStrategy:
         CALLS.append(("post", step, optimizers["means"].param_groups[0]["lr"]))
 
 
+@dataclasses.dataclass
+class RecordingMCMCStrategy:
+    """MCMCStrategy's fields and defaults and its hooks' signatures (gsplat 1.5.3): no absgrad, a
+    state without the scene scale, the base class's step_pre_backward, step_post_backward with lr."""
+
+    cap_max: int = 1_000_000
+    noise_lr: float = 5e5
+    refine_start_iter: int = 500
+    refine_stop_iter: int = 25_000
+    refine_every: int = 100
+    min_opacity: float = 0.005
+    verbose: bool = False
+
+    def check_sanity(self, params, optimizers):
+        record_start(params, optimizers)
+
+    def initialize_state(self):
+        return {"binoms": torch.zeros(51, 51)}
+
+    def step_pre_backward(self, *args, **kwargs):
+        CALLS.append(("pre", kwargs["step"]))
+        if HOOK_GRADIENTS["on"]:
+            record = {name: params.detach().clone() for name, params in kwargs["params"].items()}
+            GRADIENTS.append(record)
+            for name in ("opacities", "scales"):
+                kwargs["state"][name] = kwargs["params"][name].register_hook(
+                    lambda grad, name=name: record.update({f"grad {name}": grad.clone()})
+                )
+
+    def step_post_backward(self, params, optimizers, state, step, info, lr):
+        assert params["means"].grad is None  # called after the optimizer step, as simple_trainer
+        for name in ("opacities", "scales"):
+            if name in state:
+                state.pop(name).remove()
+        CALLS.append(("post", step, lr, optimizers["means"].param_groups[0]["lr"]))
+
+
 @pytest.mark.skipif("cpu" not in test_devices(), reason="CDCGS_TEST_DEVICES leaves out the CPU (no Warp CPU compiler)")
 def test_training_loop_end_to_end_on_the_cpu_with_a_stand_in(tmp_path, monkeypatch):
     scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
@@ -186,8 +273,7 @@ def test_training_loop_end_to_end_on_the_cpu_with_a_stand_in(tmp_path, monkeypat
     out.mkdir()
     args = peer.parse_args(["--data", scene, "--out", str(out), "--iters", "12", "--no-progress", "--seed", "3"])
     RENDERS.clear(), CALLS.clear(), START.clear()
-    api = types.SimpleNamespace(rasterization=fake_rasterization, DefaultStrategy=RecordingStrategy, version="1.5.3")
-    assert peer.train(args, api, torch.device("cpu")) == 0
+    assert peer.train(args, stand_in_api(), torch.device("cpu")) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     scale = metrics["protocol"]["scene_scale"]
     assert [c[:2] for c in CALLS] == [(kind, s) for s in range(12) for kind in ("pre", "post")]
@@ -197,6 +283,12 @@ def test_training_loop_end_to_end_on_the_cpu_with_a_stand_in(tmp_path, monkeypat
     assert metrics["strategy"]["name"] == "gsplat 1.5.3 DefaultStrategy" and metrics["test"]["views"] == 1
     assert 0 < metrics["test"]["ssim"] <= 1 and metrics["test"]["psnr"] > 0 and (out / "point_cloud.ply").is_file()
     assert metrics["protocol"]["train_views"] == 7 and metrics["protocol"]["adam"] == "torch default"  # CPU: unfused
+    assert [metrics["protocol"][k] for k in ("init_opacity", "init_scale", "opacity_reg", "scale_reg")] == [
+        0.1,
+        1,
+        0,
+        0,
+    ]
     # our trainer's initial Gaussians, gsplat's rates, gsplat's scene_scale (all cameras)
     loaded = load_scene(scene, images="images", progress=False)
     ours = GaussianModel.from_points(loaded.points, loaded.colors, max_sh_degree=3, init_opacity=0.1)
@@ -214,3 +306,65 @@ def test_training_loop_end_to_end_on_the_cpu_with_a_stand_in(tmp_path, monkeypat
     suite.section_training(types.SimpleNamespace(training_run=[str(out)], peer_training=None), rows.append)
     assert rows[0]["strategy"] == "gsplat 1.5.3 DefaultStrategy" and rows[0]["iterations"] == 12
     assert rows[0]["psnr"] == metrics["test"]["psnr"] and rows[0]["peak_gpu_memory_gb"] is None
+
+
+@pytest.mark.skipif("cpu" not in test_devices(), reason="CDCGS_TEST_DEVICES leaves out the CPU (no Warp CPU compiler)")
+def test_mcmc_end_to_end_on_the_cpu_with_a_stand_in(tmp_path):
+    scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
+    out = tmp_path / "out"
+    out.mkdir()
+    options = ["--iters", "12", "--no-progress", "--seed", "3", "--strategy", "mcmc", "--cap-max", "5000"]
+    args = peer.parse_args(["--data", scene, "--out", str(out), *options])
+    RENDERS.clear(), CALLS.clear(), START.clear()
+    assert peer.train(args, stand_in_api(), torch.device("cpu")) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    scale = metrics["protocol"]["scene_scale"]
+    assert [c[:2] for c in CALLS] == [(kind, s) for s in range(12) for kind in ("pre", "post")]
+    # the optimizer stepped with this step's rate; the noise gets the next one, as simple_trainer's
+    # scheduler gives it after its step
+    assert [c[3] for c in CALLS[1::2]] == pytest.approx([peer.means_lr(s, 12, scale) for s in range(12)])
+    assert [c[2] for c in CALLS[1::2]] == pytest.approx([peer.means_lr(s + 1, 12, scale) for s in range(12)])
+    assert metrics["strategy"] == {
+        "name": "gsplat 1.5.3 MCMCStrategy",
+        "cap_max": 5000,
+        "noise_lr": 5e5,
+        "refine_start_iter": 500,
+        "refine_stop_iter": 25_000,
+        "refine_every": 100,
+        "min_opacity": 0.005,
+        "verbose": False,
+    }
+    settings = [metrics["protocol"][k] for k in ("init_opacity", "init_scale", "opacity_reg", "scale_reg")]
+    assert settings == [0.5, 0.1, 0.01, 0.01] and metrics["test"]["views"] == 1
+    # simple_trainer's mcmc start (opacity 0.5, scales x 0.1), which is our mcmc preset's
+    loaded = load_scene(scene, images="images", progress=False)
+    plain = GaussianModel.from_points(loaded.points, loaded.colors, max_sh_degree=3, init_opacity=0.1)
+    ours = GaussianModel.from_points(loaded.points, loaded.colors, max_sh_degree=3, init_opacity=0.5, scale_factor=0.1)
+    for name, ours_name in peer.FROM_OURS.items():
+        torch.testing.assert_close(START[name], ours.params[ours_name].detach(), rtol=0, atol=0)
+    torch.testing.assert_close(torch.sigmoid(START["opacities"]), torch.full((300,), 0.5), rtol=0, atol=0)
+    torch.testing.assert_close(START["scales"], plain.params["log_scales"] + math.log(0.1))
+
+
+@pytest.mark.skipif("cpu" not in test_devices(), reason="CDCGS_TEST_DEVICES leaves out the CPU (no Warp CPU compiler)")
+def test_mcmc_regularisers_reach_the_opacity_and_scale_gradients(tmp_path):
+    def render_without_opacities_or_scales(**arguments):  # the loss's gradient there: the regularisers'
+        return fake_rasterization(
+            **{**arguments, "opacities": arguments["opacities"].detach(), "scales": arguments["scales"].detach()}
+        )
+
+    scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
+    out = tmp_path / "out"
+    out.mkdir()
+    args = peer.parse_args(["--data", scene, "--out", str(out), "--iters", "3", "--no-progress", "--strategy", "mcmc"])
+    CALLS.clear(), GRADIENTS.clear()
+    HOOK_GRADIENTS["on"] = True
+    try:
+        assert peer.train(args, stand_in_api(render_without_opacities_or_scales), torch.device("cpu")) == 0
+    finally:
+        HOOK_GRADIENTS["on"] = False
+    assert len(GRADIENTS) == 3
+    for record in GRADIENTS:  # 0.01 mean(sigmoid(o)) + 0.01 mean(exp(s)), differentiated by hand
+        opacity = torch.sigmoid(record["opacities"])
+        torch.testing.assert_close(record["grad opacities"], 0.01 * opacity * (1 - opacity) / 300)
+        torch.testing.assert_close(record["grad scales"], 0.01 * record["scales"].exp() / 900)

@@ -1,6 +1,8 @@
 """The peer's full training run: gsplat 1.5.3 trained on cdcgs's data and protocol, measured like ours.
 
     python benchmarks/peers/gsplat_train.py --data ../shared/data/bonsai --out outputs/gsplat_bonsai
+    python benchmarks/peers/gsplat_train.py --data ../shared/data/bonsai --out outputs/gsplat_mcmc_bonsai \
+        --strategy mcmc --cap-max 901363
     python benchmarks/run.py --sections training --training-run outputs/bonsai_adc outputs/gsplat_bonsai
 
 ``--out`` gets ``metrics.json`` with the keys ``cdcgs train`` writes (those ``benchmarks/run.py``'s
@@ -9,9 +11,11 @@ training section reads, plus a ``protocol`` record) and ``point_cloud.ply``.
 gsplat's (checked against the 1.5.3 wheel and its examples/simple_trainer.py):
 - rendering: ``gsplat.rasterization`` with packed=False, classic mode, near 0.01, far 1e10, all 16
   SH coefficients and sh_degree = min(step // 1000, 3) for the 0-based step;
-- densification: ``gsplat.DefaultStrategy()`` with its defaults; ``initialize_state(scene_scale)``,
-  ``step_pre_backward`` before ``loss.backward()`` and ``step_post_backward(packed=False)`` after
-  the optimizer step, with the 0-based step, as simple_trainer calls them;
+- densification (``--strategy default``): ``gsplat.DefaultStrategy()`` with its defaults;
+  ``initialize_state(scene_scale)``, ``step_pre_backward`` before ``loss.backward()`` and
+  ``step_post_backward(packed=False)`` after the optimizer step, with the 0-based step, as
+  simple_trainer calls them;
+- densification (``--strategy mcmc``, simple_trainer's ``mcmc`` config): see below;
 - scene_scale: 1.1 x the largest distance of a camera centre from their mean, over all views
   (simple_trainer: Parser.scene_scale x 1.1);
 - learning rates: means 1.6e-4 x scene_scale, decayed by 0.01^(1/iters) per step (ExponentialLR),
@@ -22,7 +26,7 @@ Ours, so that the two runs differ in renderer and densification only:
 - the scene from ``cdcgs.io.load_scene``, as ``cdcgs train --data`` reads it (image folder and
   size, every 8th image by sorted name held out, uint8 images on the GPU, no world normalisation);
   the Gaussians from ``GaussianModel.from_points`` (exact 3-NN scales, identity rotations, opacity
-  0.1, SH DC from the point colours, the rest 0);
+  0.1, SH DC from the point colours, the rest 0; ``--strategy mcmc``: opacity 0.5, scales x 0.1);
 - the loss 0.8 L1 + 0.2 (1 - SSIM, 11 px Gaussian window) as ``cdcgs train`` computes it: the
   fused kernels ``cdcgs.train.loss.fused_photometric_loss`` (``--loss kornia``: kornia's SSIM and
   torch's L1, what this harness used before issue 21; gsplat's own trainer fuses its SSIM too),
@@ -39,8 +43,32 @@ place in the step (after the optimizer step; ours runs before it), its 0-based s
 learning-rate step convention (ours is one iteration ahead) and scene_scale over all cameras
 (ours: the training cameras; 0.13% apart on bonsai). gsplat 1.5.3's DefaultStrategy never resets
 opacities (``step % reset_every == 0 & step > 0`` chains to a comparison that is always false);
-its own trainer runs that way, so this one does too. gsplat builds its CUDA extension (JIT) on
+its own trainer runs that way, so this one does too. The initial rotations are ours (identity);
+simple_trainer draws its quaternions with torch.rand. gsplat builds its CUDA extension (JIT) on
 first use: that happens before the timed loop.
+
+``--strategy mcmc`` is what simple_trainer's ``mcmc`` config changes (checked against gsplat
+v1.5.3's strategy/mcmc.py and examples/simple_trainer.py), the rest as above:
+- ``gsplat.MCMCStrategy(cap_max=--cap-max)`` (default 1,000,000, gsplat's and its mcmc benchmark
+  script's), its other fields at their defaults: noise_lr 5e5, refine_start_iter 500,
+  refine_stop_iter 25,000, refine_every 100, min_opacity 0.005 (simple_trainer sets verbose, which
+  only prints). ``initialize_state()`` takes no scene scale; ``step_pre_backward`` is the base
+  class's no-op, called as simple_trainer calls it; ``step_post_backward(lr=...)`` after the
+  optimizer step relocates the dead Gaussians and grows by 5% (up to cap_max; it never removes
+  any, so a cap below the initial count keeps that count) at steps 600, 700, ..., 24,900, and
+  adds position noise at every step, scaled by ``lr``. ``lr`` is ``means_lr(step + 1)``:
+  simple_trainer steps the means' ExponentialLR before the strategy and passes its
+  ``get_last_lr()``, the rate of the next step. The refinement steps empty torch's CUDA cache,
+  inside the timed step as in simple_trainer;
+- renders with absgrad=False (simple_trainer takes absgrad from DefaultStrategy only), packed=False;
+- the loss gets 0.01 mean(sigmoid(opacities)) + 0.01 mean(exp(scales)) over every Gaussian (and
+  every scale axis), after ``step_pre_backward`` and before ``loss.backward()`` (opacity_reg and
+  scale_reg; the default config has both 0); the reported loss includes them, as ours;
+- initial Gaussians: simple_trainer's init_opa 0.5 and init_scale 0.1, i.e. opacity 0.5 and
+  scales log(0.1 sqrt(mean of the squared distances to the 3 nearest points)) (scikit-learn's
+  neighbours, no floor). Here: ``GaussianModel.from_points(init_opacity=0.5, scale_rule="3dgs",
+  scale_factor=0.1)``, the same mean floored at 1e-7 from our exact KNN, which is how ``cdcgs train
+  --strategy mcmc`` starts (``MCMC.training_defaults``; its opacity rate 0.05 is gsplat's too).
 """
 
 from __future__ import annotations
@@ -81,7 +109,29 @@ FROM_OURS = {
     "sh0": "sh_dc",
     "shN": "sh_rest",
 }
-SH_EVERY, MAX_SH_DEGREE, INIT_OPACITY, SSIM_WEIGHT = 1000, 3, 0.1, 0.2
+SH_EVERY, MAX_SH_DEGREE, SSIM_WEIGHT = 1000, 3, 0.2
+MCMC_CAP_MAX = 1_000_000  # MCMCStrategy's default cap_max
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TrainerSettings:
+    """What one config of simple_trainer sets besides the strategy's own fields."""
+
+    strategy_class: str  # gsplat's strategy class
+    init_opacity: float  # init_opa
+    init_scale: float  # times the initial 3-NN scales
+    opacity_reg: float  # loss weight of mean(sigmoid(opacities))
+    scale_reg: float  # loss weight of mean(exp(scales))
+
+
+SETTINGS = {  # simple_trainer's "default" and "mcmc" configs
+    "default": TrainerSettings(
+        strategy_class="DefaultStrategy", init_opacity=0.1, init_scale=1.0, opacity_reg=0.0, scale_reg=0.0
+    ),
+    "mcmc": TrainerSettings(
+        strategy_class="MCMCStrategy", init_opacity=0.5, init_scale=0.1, opacity_reg=0.01, scale_reg=0.01
+    ),
+}
 
 
 def means_lr(step: int, iters: int, scene_scale: float) -> float:
@@ -100,13 +150,26 @@ def view_order(count: int, seed: int):
         yield from reversed(torch.randperm(count, generator=generator).tolist())
 
 
+def regularization(params: dict, settings: TrainerSettings) -> torch.Tensor | None:
+    """simple_trainer's regularisers: opacity_reg mean(sigmoid(opacities [N])) + scale_reg
+    mean(exp(scales [N, 3])), or None where both weights are 0."""
+    if settings.opacity_reg == 0 and settings.scale_reg == 0:
+        return None
+    opacity = torch.sigmoid(params["opacities"]).mean()
+    return settings.opacity_reg * opacity + settings.scale_reg * torch.exp(params["scales"]).mean()
+
+
 def load_gsplat() -> tuple[SimpleNamespace | None, list[str]]:
-    """(gsplat's rasterization, DefaultStrategy and version; []), or (None, why it cannot run here)."""
+    """(gsplat's rasterization, strategies and version; []), or (None, why it cannot run here)."""
     problems, api = [], None
     try:
         import gsplat
 
-        api = SimpleNamespace(rasterization=gsplat.rasterization, DefaultStrategy=gsplat.DefaultStrategy)
+        api = SimpleNamespace(
+            rasterization=gsplat.rasterization,
+            DefaultStrategy=gsplat.DefaultStrategy,
+            MCMCStrategy=gsplat.MCMCStrategy,
+        )
         api.version = getattr(gsplat, "__version__", "?")
     except ImportError as err:
         problems.append(f"gsplat is not importable ({err}); install gsplat=={EXPECTED_VERSION} into this environment")
@@ -169,12 +232,14 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
     random.seed(args.seed)
     scene = load_scene(args.data, images=args.images, device=device, progress=args.progress)
     scene_scale = scene_extent(scene.views)  # all cameras, as gsplat's Parser
+    settings, mcmc = SETTINGS[args.strategy], args.strategy == "mcmc"
     model = GaussianModel.from_points(
         scene.points,
         scene.colors,
         max_sh_degree=MAX_SH_DEGREE,
-        init_opacity=INIT_OPACITY,
+        init_opacity=settings.init_opacity,
         scale_rule="3dgs",
+        scale_factor=settings.init_scale,
         device=device,
     )
     params = {name: torch.nn.Parameter(model.params[ours].detach()) for name, ours in FROM_OURS.items()}
@@ -186,10 +251,11 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
         )
         for name, p in params.items()
     }
-    strategy = api.DefaultStrategy()
+    strategy = api.MCMCStrategy(cap_max=args.cap_max) if mcmc else api.DefaultStrategy()
     strategy.check_sanity(params, optimizers)
-    state = strategy.initialize_state(scene_scale=scene_scale)
-    render = make_renderer(api.rasterization, params, strategy.absgrad)
+    # simple_trainer's branches: MCMCStrategy's state needs no scene scale, and it has no absgrad
+    state = strategy.initialize_state() if mcmc else strategy.initialize_state(scene_scale=scene_scale)
+    render = make_renderer(api.rasterization, params, absgrad=False if mcmc else strategy.absgrad)
     cameras = [(v.viewmat[None].to(device), v.K[None].to(device)) for v in scene.train]
     order = view_order(len(scene.train), args.seed)
     if device.type == "cuda":
@@ -211,6 +277,9 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
             target = view.image.float() / 255.0
             loss = photometric_loss(image, target, SSIM_WEIGHT)
             image_psnr = psnr(image.detach(), target)
+        regularizer = regularization(params, settings)
+        if regularizer is not None:
+            loss = loss + regularizer
         loss.backward()
         loss_value, psnr_value = torch.stack([loss.detach(), image_psnr]).tolist()
         if not math.isfinite(loss_value):
@@ -220,9 +289,10 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
         for optimizer in optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-        strategy.step_post_backward(
-            params=params, optimizers=optimizers, state=state, step=step, info=info, packed=False
-        )
+        # MCMCStrategy's noise takes the means' rate that simple_trainer's scheduler, stepped just
+        # before this call, gives the next step
+        extra = {"lr": means_lr(step + 1, args.iters, scene_scale)} if mcmc else {"packed": False}
+        strategy.step_post_backward(params=params, optimizers=optimizers, state=state, step=step, info=info, **extra)
         train_seconds += time.perf_counter() - start
         loss_avg = loss_value if loss_avg is None else 0.9 * loss_avg + 0.1 * loss_value
         psnr_avg = psnr_value if psnr_avg is None else 0.9 * psnr_avg + 0.1 * psnr_value
@@ -261,7 +331,7 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
         "iterations_per_second": args.iters / max(train_seconds, 1e-9),
         "peak_gpu_memory_gb": peak,
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-        "strategy": {"name": f"gsplat {api.version} DefaultStrategy", **dataclasses.asdict(strategy)},
+        "strategy": {"name": f"gsplat {api.version} {settings.strategy_class}", **dataclasses.asdict(strategy)},
         "protocol": {
             "data": os.path.abspath(args.data),
             "images": args.images,
@@ -274,6 +344,10 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
             "adam": "fused" if fused else "torch default",
             "loss": args.loss,
             "renderer": f"gsplat {api.version} rasterization(packed=False, rasterize_mode='classic')",
+            "init_opacity": settings.init_opacity,
+            "init_scale": settings.init_scale,
+            "opacity_reg": settings.opacity_reg,
+            "scale_reg": settings.scale_reg,
         },
     }
     with open(os.path.join(args.out, "metrics.json"), "w") as f:
@@ -300,11 +374,29 @@ def parse_args(argv=None) -> argparse.Namespace:
     add(
         "--loss", choices=("fused", "kornia"), default="fused", help="the loss kernels of cdcgs train, or kornia's SSIM"
     )
+    add(
+        "--strategy",
+        choices=tuple(SETTINGS),
+        default="default",
+        help="gsplat's DefaultStrategy, or its MCMCStrategy with simple_trainer's mcmc settings",
+    )
+    add(
+        "--cap-max",
+        type=int,
+        default=None,
+        help=f"with --strategy mcmc: the most Gaussians, MCMCStrategy's cap_max (default {MCMC_CAP_MAX:,})",
+    )
     add("--progress", action=argparse.BooleanOptionalAction, default=True, help="show a progress bar")
     add("--overwrite", action="store_true", help="replace a run already in --out")
     args = parser.parse_args(argv)
     if args.iters <= 0:
         parser.error(f"--iters must be positive, got {args.iters}")
+    if args.cap_max is not None and args.strategy != "mcmc":
+        parser.error(f"--cap-max is MCMCStrategy's cap_max: it needs --strategy mcmc (got --strategy {args.strategy})")
+    if args.strategy == "mcmc" and args.cap_max is None:
+        args.cap_max = MCMC_CAP_MAX
+    if args.cap_max is not None and args.cap_max <= 0:
+        parser.error(f"--cap-max must be positive, got {args.cap_max}")
     return args
 
 
