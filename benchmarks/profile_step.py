@@ -178,15 +178,15 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     maps = ComplexityMaps(trainer.scene.train[:views], "dwt", device)
     maps.all()
-    complexity_over_views(trainer._render, maps, trainer.model.num, device)  # warm-up
+    complexity_over_views(trainer._bins, maps, trainer.model.num, device)  # warm-up
     sync()
     start = time.perf_counter()
-    complexity_over_views(trainer._render, maps, trainer.model.num, device)
+    complexity_over_views(trainer._bins, maps, trainer.model.num, device)
     sync()
     wall_ms = (time.perf_counter() - start) * 1e3 / views
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     with profile(activities=activities) as prof:
-        complexity_over_views(trainer._render, maps, trainer.model.num, device)
+        complexity_over_views(trainer._bins, maps, trainer.model.num, device)
         sync()
     kernels: dict[str, float] = {}
     for e in prof.events():

@@ -6,7 +6,7 @@ they can be launched from any Warp program. Importing cdcgs initialises nothing:
 starts on the first render.
 """
 
-__all__ = ["PreparedCamera", "RasterizeInfo", "prepare_camera", "rasterize"]
+__all__ = ["PreparedCamera", "RasterizeInfo", "bin_view", "prepare_camera", "rasterize"]
 __version__ = "0.1.0"
 
 

@@ -125,7 +125,6 @@ def gaussian_complexity(
             wp_array(info.means2d.detach().contiguous(), wp.vec2),
             wp_array(info.conics.detach().contiguous(), wp.vec3),
             wp_array(opacities.detach().contiguous(), wp.float32),
-            wp_array(info.last_contributor, wp.int32),
             wp_array(hf_map.to(device).contiguous(), wp.uint8),
             info.width,
             info.height,
@@ -242,20 +241,22 @@ class ViewComplexity:
 
 @torch.no_grad()
 def complexity_over_views(
-    render, maps: ComplexityMaps, num_gaussians: int, device, ranks=None, **options
+    bins, maps: ComplexityMaps, num_gaussians: int, device, ranks=None, **options
 ) -> torch.Tensor:
-    """[N] Γ over every view of ``maps``: ``render(i) -> (image, alpha, info)`` draws view ``i``.
+    """[N] Γ over every view of ``maps``: ``bins(i)`` is the :class:`cdcgs.render.RasterizeInfo`
+    of view ``i``'s projection and tile lists (:func:`cdcgs.render.bin_view`, which skips the
+    colours and the blend that Γ does not read, or a render's info).
 
     ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
     ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
-    of several processes): each renders the views ``rank``, ``rank + world``, ... and the
+    of several processes): each bins the views ``rank``, ``rank + world``, ... and the
     processes' sums or maxima are reduced, so every process gets the Γ of all views.
     """
     accumulator = ViewComplexity(num_gaussians, device, **options)
     seed = accumulator.views_added
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     for index in range(rank, len(maps), world):
-        _, _, info = render(index)
+        info = bins(index)
         accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
         accumulator.add(info, maps[index])
     if world > 1:

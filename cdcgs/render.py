@@ -33,7 +33,7 @@ from .kernels.projection import (
     sh_to_color_kernel,
 )
 
-__all__ = ["PreparedCamera", "RasterizeInfo", "prepare_camera", "rasterize"]
+__all__ = ["PreparedCamera", "RasterizeInfo", "bin_view", "prepare_camera", "rasterize"]
 
 
 @dataclass
@@ -59,6 +59,8 @@ class RasterizeInfo:
         sorted_gauss_ids: [num_intersections] int32 Gaussian ids ordered by (tile, depth).
         last_contributor: [H, W] int32 index into ``sorted_gauss_ids`` of each pixel's last
             composited Gaussian (start - 1 when none).
+        (From :func:`bin_view`, which does no blend: ``colors``, ``last_contributor``,
+        ``transmittance`` and ``depth`` are None.)
         transmittance: [H, W] final transmittance (1 - alpha).
         depth: [H, W] expected depth (sum of weight x depth / alpha, 0 where alpha is 0) when
             ``render_depth`` was asked for, else None. Differentiable.
@@ -134,23 +136,65 @@ class RasterizeInfo:
 # Autograd functions
 
 
+def _project(means, quats, scales, opacities, camera: Camera, antialiased: bool, nonfinite):
+    """(means2d, conics, depths, opacities as composited, radii) of every Gaussian; the flags of
+    non-finite means, quats, scales and opacities go to ``nonfinite[0:4]``."""
+    n = means.shape[0]
+    # The kernel writes every entry (zeros for culled Gaussians): no zero fills.
+    means2d = means.new_empty(n, 2)
+    conics = means.new_empty(n, 3)
+    depths = means.new_empty(n)
+    out_opacities = means.new_empty(n)
+    radii = torch.empty(n, 2, dtype=torch.int32, device=means.device)
+    with _warp_scope(means.device):
+        wp.launch(
+            project_gaussians_kernel,
+            n,
+            inputs=_project_inputs(means, quats, scales, opacities, camera, antialiased),
+            outputs=[*_project_outputs(means2d, conics, depths, out_opacities, radii), _arg(nonfinite, wp.int32)],
+        )
+    return means2d, conics, depths, out_opacities, radii
+
+
+def _bin(means2d, radii, depths, conics, opacities, width: int, height: int, read_count) -> TileBins:
+    """The depth-sorted tile lists of a projection, each Gaussian only in the tiles where it
+    reaches alpha 1/255 (``read_count``: as :func:`cdcgs.kernels.binning.bin_gaussians`)."""
+    allocate, zeros = _torch_allocators(means2d.device)
+    return bin_gaussians(
+        _wp(means2d.detach(), wp.vec2),
+        _wp(radii, wp.vec2i),
+        _wp(depths.detach(), wp.float32),
+        width,
+        height,
+        allocate=allocate,
+        zeros=zeros,
+        read_count=read_count,
+        conics=_wp(conics.detach(), wp.vec3),
+        opacities=_wp(opacities.detach(), wp.float32),
+    )
+
+
+def _count_reader(nonfinite: torch.Tensor, names):
+    """``read_count`` for :func:`_bin`: the single host synchronisation of a render, where the
+    intersection count sizes the sort buffers. The finiteness flags (``nonfinite[i]`` for
+    ``names[i]``) travel with it, so that validation costs no extra synchronisation."""
+
+    def read_count(offsets: wp.array) -> int:
+        values = torch.cat([nonfinite, wp.to_torch(offsets)[-1:]]).tolist()
+        for name, bad in zip(names, values[:-1]):
+            if bad:
+                raise NonFiniteError(name)
+        return values[-1]
+
+    return read_count
+
+
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, camera: Camera, antialiased: bool, nonfinite):
-        n = means.shape[0]
-        # The kernel writes every entry (zeros for culled Gaussians): no zero fills.
-        means2d = means.new_empty(n, 2)
-        conics = means.new_empty(n, 3)
-        depths = means.new_empty(n)
-        out_opacities = means.new_empty(n)
-        radii = torch.empty(n, 2, dtype=torch.int32, device=means.device)
-        with _warp_scope(means.device):
-            wp.launch(
-                project_gaussians_kernel,
-                n,
-                inputs=_project_inputs(means, quats, scales, opacities, camera, antialiased),
-                outputs=[*_project_outputs(means2d, conics, depths, out_opacities, radii), _arg(nonfinite, wp.int32)],
-            )
+        means2d, conics, depths, out_opacities, radii = _project(
+            means, quats, scales, opacities, camera, antialiased, nonfinite
+        )
         ctx.save_for_backward(means, quats, scales, opacities, means2d, conics, depths, out_opacities, radii)
         ctx.camera = camera
         ctx.antialiased = antialiased
@@ -626,28 +670,8 @@ def rasterize(
                 means, sh, sh_rest, sh_degree, prepared.center, radii, nonfinite[len(checked) - 1 :]
             )
 
-        def read_count(offsets: wp.array) -> int:
-            # The single host synchronisation of a render: the intersection count sizes the sort
-            # buffers. The finiteness flags travel with it so that validation costs no extra sync.
-            values = torch.cat([nonfinite, wp.to_torch(offsets)[-1:]]).tolist()
-            for name, bad in zip(checked, values[:-1]):
-                if bad:
-                    raise NonFiniteError(name)
-            return values[-1]
-
-        allocate, zeros = _torch_allocators(device)
-        bins = bin_gaussians(
-            _wp(means2d.detach(), wp.vec2),
-            _wp(radii, wp.vec2i),
-            _wp(depths.detach(), wp.float32),
-            width,
-            height,
-            allocate=allocate,
-            zeros=zeros,
-            read_count=read_count,
-            conics=_wp(conics.detach(), wp.vec3),
-            opacities=_wp(composited_opacities.detach(), wp.float32),
-        )
+        read_count = _count_reader(nonfinite, list(checked))
+        bins = _bin(means2d, radii, depths, conics, composited_opacities, width, height, read_count)
         absgrad_request = {}  # info.retain_absgrad() puts the AbsGS sums' tensor here for the backward pass
         image, transmittance, depth_sum, last = _Blend.apply(
             means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad_request
@@ -656,14 +680,21 @@ def rasterize(
     depth = None
     if render_depth:
         depth = torch.where(alpha > 0, depth_sum / alpha.clamp_min(1e-10), torch.zeros_like(depth_sum))
-    info = RasterizeInfo(
+    projection = (means2d, conics, depths, composited_opacities, radii)
+    info = _info(width, height, projection, bins, colors, last, transmittance, depth, absgrad_request)
+    return image, alpha, info
+
+
+def _info(width, height, projection, bins, colors, last, transmittance, depth, absgrad) -> RasterizeInfo:
+    means2d, conics, depths, opacities, radii = projection
+    return RasterizeInfo(
         width=width,
         height=height,
         tile_size=TILE_SIZE,
         means2d=means2d,
         conics=conics,
         depths=depths,
-        opacities=composited_opacities,
+        opacities=opacities,
         colors=colors,
         radii=radii,
         tile_counts=wp.to_torch(bins.tile_counts),
@@ -673,6 +704,50 @@ def rasterize(
         last_contributor=last,
         transmittance=transmittance,
         depth=depth,
-        _absgrad=absgrad_request,
+        _absgrad=absgrad,
     )
-    return image, alpha, info
+
+
+@torch.no_grad()
+def bin_view(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    *,
+    camera: PreparedCamera,
+    antialiased: bool = False,
+) -> RasterizeInfo:
+    """The projection and the depth-sorted tile lists of one view, without colours or an image.
+
+    What the kernels that walk the tile lists by themselves need (CDC-GS's Γ pass,
+    :func:`cdcgs.complexity.gaussian_complexity`): a render less its colours and its blend, and
+    without autograd. The arguments are :func:`rasterize`'s, the camera prepared. The returned
+    info's ``colors``, ``last_contributor``, ``transmittance`` and ``depth`` are None.
+
+    Raises:
+        ValueError: as :func:`rasterize`: an argument of the wrong type, dtype, shape or device,
+            non-finite values (naming the tensor), an empty scene, a camera that is not prepared.
+    """
+    means = _check_tensor("means", means, (None, 3), None)
+    device = means.device
+    n = means.shape[0]
+    if n == 0:
+        raise ValueError("means is empty: the scene has no Gaussians to render")
+    checked = {
+        "means": means,
+        "quats": _check_tensor("quats", quats, (n, 4), device),
+        "scales": _check_tensor("scales", scales, (n, 3), device),
+        "opacities": _check_tensor("opacities", opacities, (n,), device),
+    }
+    if not isinstance(camera, PreparedCamera):
+        raise ValueError(
+            f"camera must be a PreparedCamera (from cdcgs.render.prepare_camera), got {type(camera).__name__}"
+        )
+    with _warp_scope(device):
+        nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
+        projection = _project(*checked.values(), camera.camera, antialiased, nonfinite)
+        means2d, conics, depths, composited_opacities, radii = projection
+        read_count = _count_reader(nonfinite, list(checked))
+        bins = _bin(means2d, radii, depths, conics, composited_opacities, camera.width, camera.height, read_count)
+    return _info(camera.width, camera.height, projection, bins, None, None, None, None, {})

@@ -7,6 +7,8 @@ from conftest import make_scene
 
 import cdcgs
 from cdcgs.complexity import complexity_map, gaussian_complexity, high_frequency, luma
+from cdcgs.errors import NonFiniteError
+from cdcgs.render import bin_view, prepare_camera
 
 
 def test_luma_uses_proper_rgb_weights():
@@ -112,6 +114,29 @@ def test_gaussian_complexity_matches_dense_reference(device, seed, n, width, hei
     alone, no_sum, no_count = gaussian_complexity(info, hf_map.to(device), w_max=w_max, sums=False)
     assert no_sum is None and no_count is None
     torch.testing.assert_close(alone, max_out, atol=0, rtol=0)
+    # The tile lists alone (no colours, no blend) give the same Γ: the kernel finds each pixel's
+    # stop itself.
+    camera = prepare_camera(scene.viewmat, scene.K, width, height)
+    lists = bin_view(*[t.to(device) for t in scene.tensors()[:4]], camera=camera)
+    assert lists.colors is None and lists.last_contributor is None and lists.transmittance is None
+    for name in ("tile_ranges", "sorted_gauss_ids", "means2d", "conics", "opacities"):
+        torch.testing.assert_close(getattr(lists, name), getattr(info, name), atol=0, rtol=0)
+    for got, expected in zip(gaussian_complexity(lists, hf_map.to(device), w_max=w_max), (max_out, sum_out, count)):
+        torch.testing.assert_close(got, expected, atol=0, rtol=0)
+
+
+def test_bin_view_refuses_what_rasterize_refuses():
+    scene = make_scene(40, 30, 20, sh_degree=0, seed=3)
+    camera = prepare_camera(scene.viewmat, scene.K, 30, 20)
+    means, quats, scales, opacities = scene.tensors()[:4]
+    bad = means.clone()
+    bad[5, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="means"):
+        bin_view(bad, quats, scales, opacities, camera=camera)
+    with pytest.raises(ValueError, match="PreparedCamera"):
+        bin_view(means, quats, scales, opacities, camera=scene.viewmat)
+    with pytest.raises(ValueError, match="opacities"):
+        bin_view(means, quats, scales, opacities[:-1], camera=camera)
 
 
 def test_racy_max_keeps_one_pixel_per_tile(device):

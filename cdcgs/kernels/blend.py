@@ -470,7 +470,6 @@ def complexity_kernel(
     means2d: wp.array(dtype=wp.vec2),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
-    last_contributor: wp.array2d(dtype=wp.int32),
     complexity_map: wp.array2d(dtype=wp.uint8),
     width: int,
     height: int,
@@ -487,11 +486,13 @@ def complexity_kernel(
     """CDC-GS complexity of each Gaussian in one view: max (and sum, count) over the pixels it
     composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
 
-    Two passes over each pixel's list, in compositing order up to its last contributor (the same
-    alpha and transmittance rules as the forward blend), in batches of BLOCK_SIZE that the block
-    stages in shared memory on CUDA (as the forward blend does). The first finds w_max
-    (``w_max_rule``: W_MAX_WEIGHT the largest alpha * T, W_MAX_ALPHA the largest alpha over the
-    whole tile list, both floored at 1e-4); a pixel leaves it once no later Gaussian can raise
+    Two passes over each pixel's list, in compositing order, with the forward blend's alpha and
+    transmittance rules: a pixel stops before the Gaussian that would take its transmittance
+    below MIN_TRANSMITTANCE, as the blend does, so the kernel needs no forward render, only the
+    tile lists. The lists are walked in batches of BLOCK_SIZE that the block stages in shared
+    memory on CUDA (as the forward blend does). The first pass finds w_max (``w_max_rule``:
+    W_MAX_WEIGHT the largest alpha * T up to the pixel's stop, W_MAX_ALPHA the largest alpha over
+    the whole tile list, both floored at 1e-4); a pixel leaves it once no later Gaussian can raise
     w_max (alpha <= MAX_ALPHA * T), and under W_MAX_ALPHA skips a Gaussian whose opacity does
     not exceed w_max (alpha <= opacity): both exact. The second combines the warp's contributions
     per Gaussian in registers and adds them with an exact atomic max, and with ``sums`` non-zero
@@ -513,23 +514,20 @@ def complexity_kernel(
     end = tile_ranges[pix[2], 1]
     staged = on_cuda()
     hf = float(0.0)
-    last = start - 1  # pixels outside the image only help load batches and take part in the warp's collectives
-    first_end = start
+    outside = int(1)  # pixels outside the image only help load batches and take part in the warp's collectives
     if x < width and y < height:
         hf = float(complexity_map[y, x]) / 255.0
-        last = last_contributor[y, x]
-        first_end = last + 1
-        if w_max_rule == W_MAX_ALPHA:
-            first_end = end
+        outside = 0
 
     # First pass: w_max.
     w_max = float(1.0e-4)
     transmittance = float(1.0)  # stays 1 under W_MAX_ALPHA
+    stopped = outside  # under W_MAX_WEIGHT: the pixel's compositing has ended
     batch = start
     while batch < end:
         count = wp.min(BLOCK_SIZE, end - batch)
         done = int(0)
-        if batch >= first_end or MAX_ALPHA * transmittance <= w_max:
+        if stopped != 0 or MAX_ALPHA * transmittance <= w_max:
             done = 1
         if staged != 0:
             if block_count(done) >= BLOCK_SIZE:
@@ -538,7 +536,7 @@ def complexity_kernel(
                 stage_shape(local, sorted_gauss_ids[batch + local], means2d, conics, opacities)
             block_sync()
         if done == 0:
-            for j in range(wp.min(count, first_end - batch)):
+            for j in range(count):
                 g = int(0)
                 if staged == 0:
                     g = sorted_gauss_ids[batch + j]
@@ -551,33 +549,37 @@ def complexity_kernel(
                 if w_max_rule == W_MAX_ALPHA:
                     w_max = wp.max(w_max, alpha)
                 else:
+                    next_transmittance = transmittance * (1.0 - alpha)
+                    if next_transmittance < MIN_TRANSMITTANCE:  # the blend stops before this one
+                        stopped = 1
+                        break
                     w_max = wp.max(w_max, alpha * transmittance)
-                    transmittance = transmittance * (1.0 - alpha)
+                    transmittance = next_transmittance
                 if MAX_ALPHA * transmittance <= w_max:
                     break
         if staged != 0:
             block_sync()  # the batch is read before the next one overwrites it
-        elif done != 0:
+        elif done != 0 or stopped != 0:
             break
         batch += BLOCK_SIZE
 
     # Second pass: the warp's lanes walk the list together so that each Gaussian's max, sum and
-    # count are combined in registers and reach global memory once per warp.
+    # count are combined in registers and reach global memory once per warp. A lane whose pixel
+    # has stopped takes part with nothing; the warp leaves a batch once all its lanes have stopped.
     transmittance = float(1.0)
-    warp_last = lane_max_int(last)
+    stopped = outside
     batch = start
     while batch < end:
         count = wp.min(BLOCK_SIZE, end - batch)
         if staged != 0:
-            finished = int(0)
-            if batch > last:
-                finished = 1
-            if block_count(finished) >= BLOCK_SIZE:
+            if block_count(stopped) >= BLOCK_SIZE:
                 break
             if local < count:
                 stage_shape(local, sorted_gauss_ids[batch + local], means2d, conics, opacities)
             block_sync()
-        for j in range(wp.min(count, warp_last + 1 - batch)):  # the same for the warp's lanes
+        for j in range(count):  # the same for the warp's lanes
+            if lane_any(1 - stopped) == 0:
+                break
             k = batch + j
             g = int(0)
             if staged != 0:
@@ -585,15 +587,19 @@ def complexity_kernel(
             else:
                 g = sorted_gauss_ids[k]
             alpha = float(0.0)
-            if k <= last:
+            if stopped == 0:
                 shape = shape_of(staged, 0, j, g, means2d, conics, opacities)
                 alpha = shape_alpha(shape, shape_of(staged, 1, j, g, means2d, conics, opacities), px, py)
             value = float(0.0)
             valid = int(0)
             if alpha > 0.0:
-                value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
-                valid = 1
-                transmittance = transmittance * (1.0 - alpha)
+                next_transmittance = transmittance * (1.0 - alpha)
+                if next_transmittance < MIN_TRANSMITTANCE:  # the blend stops before this one
+                    stopped = 1
+                else:
+                    value = hf * wp.max(alpha * transmittance, 1.0e-4) / w_max
+                    valid = 1
+                    transmittance = next_transmittance
             if lane_any(valid) != 0:
                 if max_rule == MAX_RACY_RANK:
                     key = int(-1)
@@ -618,6 +624,6 @@ def complexity_kernel(
                         atomic_max_nonnegative(max_out, g, top)  # top >= 0, max_out zeroed by the caller
         if staged != 0:
             block_sync()
-        elif batch + count > warp_last:
+        elif stopped != 0:
             break
         batch += BLOCK_SIZE

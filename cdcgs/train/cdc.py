@@ -214,7 +214,7 @@ class Consistency:
         if self.complexity_schedule == "online":
             return ViewComplexity.from_state(state["gamma"], state["gamma_views"], **options).result()
         return complexity_over_views(
-            ctx.render, ctx.complexity_maps, ctx.model.num, ctx.model.device, ranks=ctx.ranks, **options
+            ctx.bins, ctx.complexity_maps, ctx.model.num, ctx.model.device, ranks=ctx.ranks, **options
         )
 
     def measure(self, ctx: StepContext, state: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:

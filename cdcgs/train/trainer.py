@@ -19,7 +19,7 @@ from ..complexity import ComplexityMaps
 from ..errors import InputError, NonFiniteError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
-from ..render import prepare_camera, rasterize
+from ..render import bin_view, prepare_camera, rasterize
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
@@ -320,6 +320,12 @@ class Trainer:
             antialiased=self.config.antialiased,
         )
 
+    def _bins(self, view_index: int):
+        """The projection and tile lists of a training view, without colours or image (Γ passes)."""
+        args = self.model.render_args()
+        shape = {key: args[key] for key in ("means", "quats", "scales", "opacities")}
+        return bin_view(**shape, camera=self.cameras[view_index], antialiased=self.config.antialiased)
+
     def state_dict(self) -> dict:
         return {
             "format": CHECKPOINT_FORMAT,
@@ -509,6 +515,7 @@ class Trainer:
             extent=self.scene.extent,
             generator=self.generator,
             render=self._render,
+            bins=self._bins,
             views=self.scene.train,
             complexity_maps=self.complexity_maps,
             ranks=self.ranks if self.ranks.distributed else None,

@@ -151,20 +151,20 @@ class Complexity:
     def compute(self, snapshot: Snapshot, antialiased: bool = False) -> torch.Tensor:
         """[N] Γ in [0, 1] of every Gaussian of ``snapshot``; 0 where none of its pixels is seen."""
         from ..complexity import complexity_over_views
-        from ..render import rasterize
+        from ..render import bin_view, prepare_camera
 
         if self.unavailable:
             raise RuntimeError(f"complexity is not available: {self.unavailable}")
         args = snapshot.render_args()
+        shape = {key: args[key] for key in ("means", "quats", "scales", "opacities")}
 
-        def render(index: int):
+        def bins(index: int):
             view = self.views[index]
-            return rasterize(
-                **args, viewmat=view.viewmat, K=view.K, width=view.width, height=view.height, antialiased=antialiased
-            )
+            camera = prepare_camera(view.viewmat, view.K, view.width, view.height)
+            return bin_view(**shape, camera=camera, antialiased=antialiased)
 
         return complexity_over_views(
-            render,
+            bins,
             self.maps,
             snapshot.num,
             snapshot.means.device,
