@@ -92,6 +92,7 @@ def gaussian_complexity(
     w_max: str = "alpha",
     racy_seed: int | None = None,
     sums: bool = True,
+    max_into: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """(max [N], sum [N], count [N] int32) over one render's pixels of HF * w / w_max per Gaussian.
 
@@ -102,6 +103,9 @@ def gaussian_complexity(
     Gaussian instead of the largest; the seed picks which) for the max; None: exact.
     Gaussians that composite no pixel get max 0 and count 0. ``sums`` False: the max alone (sum
     and count are None), for the max aggregations, which do not need the kernel's sums.
+    ``max_into``: a float32 [N] tensor of non-negative values (a running max over earlier views)
+    that the max is taken into, in place, and returned as the max (no zeroed array, no second
+    pass to combine them).
     """
     if hf_map.shape != (info.height, info.width) or hf_map.dtype != torch.uint8:
         raise ValueError(
@@ -112,7 +116,14 @@ def gaussian_complexity(
     n = info.means2d.shape[0]
     device = info.means2d.device
     opacities = info.opacities if opacities is None else opacities
-    max_out = torch.zeros(n, device=device)
+    if max_into is None:
+        max_out = torch.zeros(n, device=device)
+    elif max_into.shape != (n,) or max_into.dtype != torch.float32 or max_into.device != device:
+        raise ValueError(
+            f"max_into must be a float32 [{n}] tensor on {device}, got {max_into.dtype} {list(max_into.shape)}"
+        )
+    else:
+        max_out = max_into
     sum_out = torch.zeros(n if sums else 1, device=device)
     count_out = torch.zeros(n if sums else 1, dtype=torch.int32, device=device)
     racy = racy_seed is not None
@@ -225,6 +236,10 @@ class ViewComplexity:
         """Add one render (its RasterizeInfo) of a view with complexity map ``hf_map``."""
         racy_seed = self.views_added if self.racy_max else None
         sums = self.pixel_aggregation == "mean" or self.view_aggregation == "mean"
+        if not sums:  # max over pixels and views: the kernel takes the max into the running one
+            gaussian_complexity(info, hf_map, w_max=self.w_max, racy_seed=racy_seed, sums=False, max_into=self.total)
+            self.views_added += 1
+            return
         max_out, sum_out, count = gaussian_complexity(info, hf_map, w_max=self.w_max, racy_seed=racy_seed, sums=sums)
         self.views_added += 1
         per_view = max_out if self.pixel_aggregation == "max" else sum_out / count.clamp_min(1)

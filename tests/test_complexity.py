@@ -3,10 +3,10 @@
 import pytest
 import reference
 import torch
-from conftest import make_scene
+from conftest import look_at, make_scene
 
 import cdcgs
-from cdcgs.complexity import complexity_map, gaussian_complexity, high_frequency, luma
+from cdcgs.complexity import ViewComplexity, complexity_map, gaussian_complexity, high_frequency, luma
 from cdcgs.errors import NonFiniteError
 from cdcgs.render import bin_view, prepare_camera
 
@@ -174,3 +174,25 @@ def test_bad_map_is_refused(device):
         gaussian_complexity(info, torch.zeros(24, 31, dtype=torch.uint8, device=device))
     with pytest.raises(ValueError, match="hf_map must be a uint8"):
         gaussian_complexity(info, torch.zeros(24, 32, device=device))
+
+
+@pytest.mark.parametrize("racy", [False, True])
+def test_max_over_views_is_taken_in_place_into_the_running_max(device, racy):
+    """ViewComplexity's max over pixels and views hands its running max to the kernel
+    (``max_into``): the same as each view's max combined afterwards."""
+    scene = make_scene(200, 40, 30, sh_degree=0, seed=5)
+    tensors = [t.to(device) for t in scene.tensors()[:4]]
+    g = torch.Generator().manual_seed(5)
+    accumulator = ViewComplexity(200, device, racy_max=racy, racy_seed=3)
+    expected = torch.zeros(200)
+    for index, eye in enumerate([(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5)]):
+        camera = prepare_camera(look_at(eye, (0.0, 0.0, 0.0)), scene.K, 40, 30)
+        lists = bin_view(*tensors, camera=camera)
+        hf_map = (torch.rand(30, 40, generator=g) * 255).to(torch.uint8).to(device)
+        alone, _, _ = gaussian_complexity(lists, hf_map, racy_seed=3 + index if racy else None, sums=False)
+        expected = torch.maximum(expected, alone.cpu())
+        accumulator.add(lists, hf_map)
+    assert (expected > 0).sum() > 50
+    torch.testing.assert_close(accumulator.result().cpu(), expected, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="max_into"):
+        gaussian_complexity(lists, hf_map, max_into=torch.zeros(199, device=device))
