@@ -1,6 +1,8 @@
 """DashGaussian's resolution schedule (``--resolution-schedule dash``): the spectrum windows against
-brute force, the schedule on spectra whose answer is known, and a training that follows it."""
+brute force, the schedule on spectra whose answer is known, and a training that follows it; its
+primitive budget (``--budget-schedule dash``) against hand computations and in a training."""
 
+import json
 import math
 from itertools import pairwise
 
@@ -14,6 +16,8 @@ from cdcgs.train.config import LearningRates
 from cdcgs.train.schedules import (
     ResolutionSchedule,
     _summed_area,
+    dash_budget,
+    dash_momentum,
     dash_schedule,
     position_lr,
     solve_window,
@@ -137,3 +141,60 @@ def test_a_whole_run_with_the_schedule_and_the_refusal_with_online_complexity(ti
     with pytest.raises(OptionError, match="--complexity-schedule online"):
         Trainer(config, {**SHORT, "complexity_schedule": "online"}).run()
     assert not (tmp_path / "cdc").exists() or not any((tmp_path / "cdc").iterdir())
+
+
+def test_the_budget_rises_with_the_resolution():
+    # From 1000 Gaussians to a bound of 11000, densifying every 100 steps until 15000.
+    def budget(step, scale, count):
+        return dash_budget(step, scale, count, initial=1000, bound=11000, until=15000, every=100)
+
+    # 4^(2 - 1000/15000) = 14.588: 1000 + int(10000 / 14.588) = 1685, under 1500 x 1.2 = 1800.
+    assert budget(1000, 4, 1500) == 1685
+    assert budget(1000, 4, 1000) == 1200, "at most 20% more in one step"
+    assert budget(1000, 4, 5000) == 5000, "above the budget: no growth, and no removal"
+    # 2^(2 - 7500/15000) = 2.828: 1000 + int(10000 / 2.828) = 4535.
+    assert budget(7500, 2, 4000) == 4535
+    assert budget(7500, 1, 10000) == 11000, "full size: the whole bound"
+    # The last densification step (14900 + 100 is not before 15000) takes the bound at any scale.
+    # 2^(2 - 14800/15000) = 2.019: 1000 + int(10000 / 2.019) = 5954.
+    assert budget(14800, 2, 5000) == 5954
+    assert budget(14900, 2, 10000) == 11000
+
+
+def test_the_momentum_follows_the_selected_counts():
+    assert dash_momentum(5000, 300) == 5200  # int(0.98 x 5000 + 300)
+    assert dash_momentum(5000, 50) == 5000, "4950 is lower: the estimate never falls"
+    assert dash_momentum(10, 2_000_000) == 1_000_009, "a step adds at most 1,000,000"
+
+
+def test_a_whole_run_under_the_budget_and_its_refusal_without_the_schedule(tiny_scene, tmp_path):
+    options = {**SHORT, "budget_schedule": "dash"}
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path / "run", iters=100, resolution_schedule="dash"), options)
+    result = trainer.run()
+    assert result["iterations"] == 100 and math.isfinite(result["test"]["psnr"])
+    steps = [entry for entry in trainer.history["strategy"] if "gaussians" in entry]
+    assert [entry["step"] for entry in steps] == [40, 60, 80, 100]
+    bound_start = 1500 + 5 * 1500  # the initial count plus the momentum's start, 5 x 1500
+    count, bound = 1500, bound_start
+    for entry in steps:
+        scale = trainer.resolution.scale_at(entry["step"] - entry["step"] % 100)
+        cap = dash_budget(entry["step"], scale, count, 1500, bound, until=120, every=20)
+        assert count + entry["cloned"] + entry["split"] <= cap, entry
+        count, bound = entry["gaussians"], entry["budget_bound"]
+    assert count == trainer.model.num
+    # Measured: the first step selects about 1900 of the 1500 (split or cloned) and the 20% step binds.
+    assert steps[0]["gaussians"] == 1800 and steps[0]["budget_bound"] > bound_start
+    with open(tmp_path / "run" / "config.json") as f:
+        strategy = json.load(f)["strategy"]
+    assert strategy["budget_schedule"] == "dash" and strategy["budget_max"] is None
+    # A bound at the initial count: no growth at all.
+    capped = Trainer(
+        tiny_config(tiny_scene, tmp_path / "capped", iters=60, resolution_schedule="dash"),
+        {**options, "budget_max": 1500},
+    )
+    capped.run()
+    assert capped.model.num <= 1500
+    assert all(entry.get("cloned", 0) + entry.get("split", 0) == 0 for entry in capped.history["strategy"])
+    with pytest.raises(OptionError, match="needs --resolution-schedule dash"):
+        Trainer(tiny_config(tiny_scene, tmp_path / "plain", iters=5), options).run()
+    assert not (tmp_path / "plain").exists() or not any((tmp_path / "plain").iterdir())

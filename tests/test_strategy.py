@@ -1,12 +1,14 @@
 """Densification on hand-built states: which Gaussians are cloned, split, pruned, reset, and
 what happens to their Adam moments."""
 
+import dataclasses
 import math
 
 import pytest
 import torch
 from helpers import context, fake_info, hand_model, moments
 
+from cdcgs.errors import OptionError
 from cdcgs.train import ops
 from cdcgs.train.cdc import CDC
 from cdcgs.train.config import LearningRates
@@ -121,6 +123,53 @@ def test_max_gaussians_caps_growth_keeping_the_strongest():
     )
     # Room for one more: the strongest candidate (1) alone.
     assert clone.tolist() == [False, True, False, False, False, False] and not split.any()
+
+
+def budget_step(strategy, scale=2):
+    """A densification step at 600 of 20 hand-made Gaussians rendered at 1/``scale`` size: the
+    candidates are 0 and 1 (small: cloned) and 3 and 4 (large: split), strongest 4, 1, 0, 3;
+    Gaussian 5 is pruned for its opacity. Returns (log, state)."""
+    model, optimizer = hand_model(20)
+    state = strategy.initialize_state(model)
+    state["grad_sum"] = torch.zeros(20)
+    state["grad_sum"][[4, 1, 0, 3]] = torch.tensor([9e-4, 8e-4, 7e-4, 6e-4])
+    state["count"] = torch.ones(20)
+    ctx = dataclasses.replace(context(model, optimizer, None, 600), resolution_scale=scale)
+    return strategy.refine(ctx, state), state
+
+
+def test_the_dash_budget_caps_growth_keeping_the_strongest():
+    free, _ = budget_step(ADC())
+    assert (free["cloned"], free["split"], free["pruned"], free["gaussians"]) == (2, 2, 1, 23)
+    # Bound 30 from 20 Gaussians at step 600 of 15000, scale 2: 20 + int(10 / 2^1.96) = 20 + int(2.57) = 22,
+    # under the 20% step (24): room for two, the strongest, 4 (split) and 1 (cloned).
+    log, state = budget_step(ADC(budget_schedule="dash", budget_max=30))
+    assert (log["cloned"], log["split"], log["pruned"], log["gaussians"]) == (1, 1, 1, 21)
+    assert log["budget_bound"] == 30 and state["budget_initial"] == 20 and state["budget_momentum"] == -1
+    # At full size the whole bound, but the 20% step (int(20 x 1.2) = 24) leaves room for all four.
+    assert budget_step(ADC(budget_schedule="dash", budget_max=30), scale=1)[0]["gaussians"] == 23
+    # No preset bound: 20 + 5 x 20 = 120, 20 + int(100 / 2^1.96) = 45 > 24: all four grow; the
+    # momentum takes in the four selected, int(0.98 x 100 + 4) = 102, and the initial count stays.
+    log, state = budget_step(ADC(budget_schedule="dash"))
+    assert log["gaussians"] == 23 and log["budget_bound"] == 122
+    assert state["budget_momentum"] == 102 and state["budget_initial"] == 20
+    assert state["grad_sum"].shape == (23,) and not state["grad_sum"].any(), "the statistics do reset"
+    # Under a lower --max-gaussians the tighter cap holds.
+    log, _ = budget_step(ADC(budget_schedule="dash", budget_max=30, max_gaussians=21, cap_rule="fill"))
+    assert (log["cloned"], log["split"]) == (0, 1)
+    cdc, _ = budget_step(CDC.from_preset("3dgs", {"budget_schedule": "dash", "budget_max": 30}))
+    assert (cdc["cloned"], cdc["split"], cdc["gaussians"]) == (1, 1, 21)
+
+
+def test_the_dash_budget_refusals():
+    with pytest.raises(OptionError, match="--budget-max is the bound of --budget-schedule dash"):
+        ADC(budget_max=100)
+    with pytest.raises(OptionError, match="--budget-schedule dash cannot be combined with --target-gaussians"):
+        ADC(budget_schedule="dash", target_gaussians=100)
+    with pytest.raises(OptionError, match="--budget-schedule"):
+        ADC(budget_schedule="fast")
+    with pytest.raises(OptionError, match="needs --resolution-schedule dash"):
+        budget_step(ADC(budget_schedule="dash"), scale=None)
 
 
 def test_absgrad_mode_uses_absolute_accumulator():

@@ -335,7 +335,7 @@ class CDC(Consistency, ADC):
             selected = (mean_grad >= threshold) | drawn
         else:
             selected = mean_grad >= threshold
-        cap, rule = self.growth_cap()
+        cap, rule = self.growth_cap(ctx, state)
         if cap is not None and rule == "skip" and model.num >= cap and prune_extra is not None:
             prune_extra = torch.zeros_like(prune_extra)  # the CDC-GS code skips the consistency pruning too
         clone, split = self.grow_masks(ctx, state, selected)

@@ -1,4 +1,5 @@
-"""Schedules: the position learning rate, and the training resolution (DashGaussian).
+"""Schedules: the position learning rate, the training resolution and the primitive budget
+(DashGaussian).
 
 The resolution schedule follows DashGaussian (Chen et al., CVPR 2025): train at a reduced
 resolution early and raise it as the optimisation moves from the low to the high frequencies of
@@ -14,6 +15,15 @@ the photos. From the photos' centred Fourier magnitude spectra:
   linearly; from ``until`` (the end of densification) on, full resolution;
 - the trainer renders at ``size // int(s)``; the position learning rate starts decaying only when
   the scale drops below 2 (:func:`position_lr`'s ``decay_from``).
+
+The primitive budget (``--budget-schedule dash``, :func:`dash_budget`) is DashGaussian's other
+half: the count may grow at a densification step to the initial count plus the room to the upper
+bound divided by s^(2 - step / until), s the step's downscale (so the room opens with the pixel
+count early and with the scale late), never by more than ``DASH_GROWTH_RATE`` of the count in one
+step, and to the whole bound from the last densification step before ``until``. Without a preset
+bound the bound is the initial count plus a momentum (:func:`dash_momentum`) that starts at
+``DASH_MOMENTUM_START`` times the initial count and follows the number of Gaussians that each
+densification step selects.
 """
 
 from __future__ import annotations
@@ -25,7 +35,25 @@ import torch
 
 from .config import LearningRates
 
-__all__ = ["ResolutionSchedule", "dash_schedule", "position_lr", "solve_window", "window_energy"]
+__all__ = [
+    "DASH_GROWTH_RATE",
+    "DASH_MOMENTUM_DECAY",
+    "DASH_MOMENTUM_START",
+    "DASH_MOMENTUM_STEP_CAP",
+    "ResolutionSchedule",
+    "dash_budget",
+    "dash_momentum",
+    "dash_schedule",
+    "position_lr",
+    "solve_window",
+    "window_energy",
+]
+
+# DashGaussian's constants of the primitive budget (its TrainingScheduler).
+DASH_GROWTH_RATE = 0.2  # the count grows by at most this share in one densification step
+DASH_MOMENTUM_START = 5  # the momentum starts at this many times the initial count
+DASH_MOMENTUM_DECAY = 0.98  # the share of the momentum that a densification step keeps
+DASH_MOMENTUM_STEP_CAP = 1_000_000  # at most this many selected Gaussians count in one step
 
 
 def position_lr(step: int, total_steps: int, lrs: LearningRates, extent: float, decay_from: int = 0) -> float:
@@ -146,3 +174,24 @@ def dash_schedule(
     begins.append(int(until * math.log(energy_before / lowest) / span))
     begins.append(until)
     return ResolutionSchedule(tuple(scales), tuple(begins), until)
+
+
+def dash_budget(step: int, scale: int, count: int, initial: int, bound: int, until: int, every: int) -> int:
+    """The most Gaussians the densification step at ``step`` may grow to (DashGaussian's primitive
+    scheduler): ``initial + int((bound - initial) / scale ** (2 - step / until))`` while a further
+    densification step comes before ``until`` (``step + every < until``), ``bound`` from then on;
+    never below ``count`` (no growth, but no removal either) nor above ``count`` grown by
+    ``DASH_GROWTH_RATE``. ``scale`` is the downscale the step renders at, ``count`` the Gaussians
+    before the step, ``initial`` those the run started with, ``bound`` the upper bound."""
+    if step + every < until:
+        wanted = initial + int((bound - initial) / scale ** (2 - step / until))
+    else:
+        wanted = bound
+    return min(max(wanted, count), int(count * (1 + DASH_GROWTH_RATE)))
+
+
+def dash_momentum(momentum: int, selected: int) -> int:
+    """DashGaussian's estimate of the room above the initial count after a densification step that
+    selected ``selected`` Gaussians: the larger of ``momentum`` and ``DASH_MOMENTUM_DECAY`` of it
+    plus the selection (at most ``DASH_MOMENTUM_STEP_CAP``), truncated; it never falls."""
+    return max(momentum, int(DASH_MOMENTUM_DECAY * momentum + min(DASH_MOMENTUM_STEP_CAP, selected)))

@@ -20,6 +20,7 @@ from ..errors import OptionError
 from . import ops
 from .config import check_values, option
 from .model import GaussianModel
+from .schedules import DASH_MOMENTUM_START, dash_budget, dash_momentum
 
 __all__ = ["ADC", "StepContext", "Strategy", "StrategyOptions", "strategy_option"]
 
@@ -51,6 +52,7 @@ class StepContext:
     views: list | None = None  # the training views (with their images)
     complexity_maps: Any = None  # cdcgs.complexity.ComplexityMaps of the training views, owned by the run
     ranks: Any = None  # cdcgs.train.distributed.Ranks of a run on several processes (None: one process)
+    resolution_scale: int | None = None  # the downscale this iteration renders at (None: no --resolution-schedule)
 
 
 @runtime_checkable
@@ -162,6 +164,14 @@ class ADC(StrategyOptions):
     published results were made that way (graphdeco-inria/gaussian-splatting issues 123 and 643),
     and the CDC-GS code inherits it. So ``prune_screen_size`` is 0 (off) by default; 20 gives the
     rule as written, which cost 0.75 dB of test PSNR on bonsai (docs/cdc-gs.md).
+
+    ``budget_schedule="dash"`` caps growth at DashGaussian's primitive budget
+    (:func:`cdcgs.train.schedules.dash_budget`), which rises with the resolution of
+    ``--resolution-schedule dash`` (``ctx.resolution_scale``) to ``budget_max``, or without it to
+    the initial count plus DashGaussian's momentum (:func:`cdcgs.train.schedules.dash_momentum`,
+    fed with the number of Gaussians each densification step selects). The strongest candidates
+    that fit grow, as with ``cap_rule="fill"``. Growth comes before pruning here (3DGS's order),
+    so unlike DashGaussian, which prunes first, the Gaussians a step prunes do not make room in it.
     """
 
     grad_threshold: float = strategy_option(
@@ -213,6 +223,18 @@ class ADC(StrategyOptions):
         "(3DGS-MCMC: its budget)",
         low=1,
     )
+    budget_schedule: str = strategy_option(
+        "none",
+        "none, or dash: DashGaussian's primitive budget, growth capped (strongest first) at a count that rises with "
+        "the resolution of --resolution-schedule dash to --budget-max (not exact: off by default)",
+        choices=("none", "dash"),
+    )
+    budget_max: int | None = strategy_option(
+        None,
+        "with --budget-schedule dash: the count the budget rises to (none: DashGaussian's estimate, the initial "
+        "count plus a momentum that follows the Gaussians each densification step selects)",
+        low=1,
+    )
 
     # The training options a run leaves at none: the CDC-GS code's (3DGS's, with the opacity
     # learning rate of the current INRIA code and CDC-GS's geometric-mean initial scales).
@@ -230,6 +252,13 @@ class ADC(StrategyOptions):
             raise OptionError(
                 f"--target-gaussians {self.target_gaussians} is above --max-gaussians {self.max_gaussians}"
             )
+        if self.budget_max is not None and self.budget_schedule != "dash":
+            raise OptionError("--budget-max is the bound of --budget-schedule dash: pass that too, or leave it out")
+        if self.budget_schedule == "dash" and target is not None:
+            raise OptionError(
+                "--budget-schedule dash cannot be combined with --target-gaussians: the one caps growth at a budget "
+                "that rises with the resolution, the other lands on a count (use --budget-max for the bound)"
+            )
 
     def check(self, total_steps: int) -> None:
         last = self.last_densification()
@@ -246,11 +275,17 @@ class ADC(StrategyOptions):
 
     def initialize_state(self, model: GaussianModel) -> dict:
         n, device = model.num, model.device
-        return {
+        state = {
             "grad_sum": torch.zeros(n, device=device),
             "count": torch.zeros(n, device=device),
             "max_radius": torch.zeros(n, device=device),
         }
+        if self.budget_schedule == "dash":
+            # Kept across densification steps (:meth:`apply`): the count the run started with and
+            # the momentum of the estimated bound (-1: the bound is preset).
+            state["budget_initial"] = n
+            state["budget_momentum"] = DASH_MOMENTUM_START * n if self.budget_max is None else -1
+        return state
 
     # --- hooks -------------------------------------------------------------------------------
 
@@ -323,18 +358,50 @@ class ADC(StrategyOptions):
         last -= last % self.densify_every
         return last if last > self.densify_from else None
 
-    def growth_cap(self) -> tuple[int | None, str]:
-        """(cap, rule) of growth: ``target_gaussians`` fills up to it, else ``max_gaussians`` by ``cap_rule``."""
+    def growth_cap(self, ctx: StepContext, state: dict) -> tuple[int | None, str]:
+        """(cap, rule) of growth at ``ctx.step``: ``target_gaussians`` fills up to it, else
+        ``max_gaussians`` by ``cap_rule``, or the budget (:meth:`budget`) filled where that is lower."""
         if self.target_gaussians is not None:  # never above max_gaussians (__post_init__)
             return self.target_gaussians, "fill"
+        if self.budget_schedule == "dash":
+            budget = self.budget(ctx, state)
+            if self.max_gaussians is None or budget < self.max_gaussians:
+                return budget, "fill"
         return self.max_gaussians, self.cap_rule
 
+    def budget_bound(self, state: dict) -> int:
+        """The count the budget rises to: ``budget_max``, else the initial count plus the momentum."""
+        if self.budget_max is not None:
+            return self.budget_max
+        return state["budget_initial"] + state["budget_momentum"]
+
+    def budget(self, ctx: StepContext, state: dict) -> int:
+        """DashGaussian's budget for the densification step ``ctx.step``, at the downscale
+        ``ctx.resolution_scale`` (:func:`cdcgs.train.schedules.dash_budget`)."""
+        if ctx.resolution_scale is None:
+            raise OptionError(
+                "--budget-schedule dash follows the training resolution: it needs --resolution-schedule dash"
+            )
+        return dash_budget(
+            ctx.step,
+            ctx.resolution_scale,
+            ctx.model.num,
+            state["budget_initial"],
+            self.budget_bound(state),
+            self.densify_until,
+            self.densify_every,
+        )
+
     def grow_masks(self, ctx: StepContext, state: dict, selected: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Split ``selected`` [N] into (clone, split) by size, under the cap (:meth:`growth_cap`)."""
+        """Split ``selected`` [N] into (clone, split) by size, under the cap (:meth:`growth_cap`).
+        Under the budget with no ``budget_max``, the momentum then takes in the count selected (the
+        growth the densification wanted), as DashGaussian's does after each densification step."""
         model = ctx.model
         small = model.scales().max(dim=-1).values <= self.clone_max_scale * ctx.extent
         clone, split = selected & small, selected & ~small
-        cap, rule = self.growth_cap()
+        cap, rule = self.growth_cap(ctx, state)
+        if self.budget_schedule == "dash" and self.budget_max is None:
+            state["budget_momentum"] = dash_momentum(state["budget_momentum"], int(selected.sum()))
         if cap is not None and rule == "skip" and model.num >= cap:
             return torch.zeros_like(clone), torch.zeros_like(split)
         if cap is not None and rule == "fill":
@@ -406,7 +473,11 @@ class ADC(StrategyOptions):
         log = {"cloned": n_clone, "split": n_split, "pruned": n_prune}
         if self.target_gaussians is not None and ctx.step == self.last_densification():
             log.update(self.land_on_target(ctx, after))
+        kept_state = {key: state[key] for key in ("budget_initial", "budget_momentum") if key in state}
         state.update(self.initialize_state(model))
+        state.update(kept_state)  # the budget's, which lasts the run
+        if self.budget_schedule == "dash":
+            log["budget_bound"] = self.budget_bound(state)
         return {**log, "gaussians": model.num}
 
     def land_on_target(self, ctx: StepContext, score: torch.Tensor) -> dict:

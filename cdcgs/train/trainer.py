@@ -167,6 +167,11 @@ class Trainer:
             self.strategy_options = resume_state.get("strategy_options", self.strategy_options)
         self.strategy = make_strategy(config.strategy, self.strategy_options)
         self.strategy.check(config.iters)
+        if getattr(self.strategy, "budget_schedule", "none") == "dash" and config.resolution_schedule != "dash":
+            raise OptionError(
+                "--budget-schedule dash grows the Gaussian budget with the training resolution: it needs "
+                "--resolution-schedule dash"
+            )
         # The options left at none take the resumed run's values, else the strategy's; config.json
         # records them.
         saved = resume_state.get("config") if resume_state else None
@@ -519,6 +524,7 @@ class Trainer:
             views=self.scene.train,
             complexity_maps=self.complexity_maps,
             ranks=self.ranks if self.ranks.distributed else None,
+            resolution_scale=None if self.resolution is None else self._downscale(iteration),
         )
 
     def _view_backward(self, iteration: int, view_index: int, background: torch.Tensor):
