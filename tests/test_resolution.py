@@ -9,7 +9,7 @@ from itertools import pairwise
 import pytest
 import torch
 import torch.nn.functional as F
-from helpers import SHORT, tiny_config
+from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config
 
 from cdcgs.errors import OptionError
 from cdcgs.train.config import LearningRates
@@ -198,3 +198,27 @@ def test_a_whole_run_under_the_budget_and_its_refusal_without_the_schedule(tiny_
     with pytest.raises(OptionError, match="needs --resolution-schedule dash"):
         Trainer(tiny_config(tiny_scene, tmp_path / "plain", iters=5), options).run()
     assert not (tmp_path / "plain").exists() or not any((tmp_path / "plain").iterdir())
+
+
+@pytest.mark.skipif(DEFAULT_DEVICE != "cpu", reason="bitwise repeatable on the CPU only")
+def test_a_run_under_the_budget_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
+    """The budget's state (the initial count, the momentum) lives in the checkpoint: a run stopped
+    between two densification steps and resumed ends as the run that was never stopped."""
+    options = {**SHORT, "budget_schedule": "dash"}
+
+    def config(out, **extra):
+        return tiny_config(tiny_scene, tmp_path / out, iters=90, resolution_schedule="dash", **extra)
+
+    straight = Trainer(config("a"), options)
+    straight.run()
+    with monkeypatch.context() as patch:
+        interrupt_at(patch, 50)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(config("b"), options).run()
+    resumed = Trainer(config("b", resume=True), options)
+    resumed.run()
+    assert [e.get("budget_bound") for e in resumed.history["strategy"]] == [
+        e.get("budget_bound") for e in straight.history["strategy"]
+    ]
+    for name, p in straight.model.params.items():
+        assert torch.equal(resumed.model.params[name], p), name
