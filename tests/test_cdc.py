@@ -250,3 +250,32 @@ def test_compare_plots_runs(tiny_scene, tmp_path, capsys):
     assert (tmp_path / "fig.png").stat().st_size > 1000
     assert cli_main(["compare", str(tmp_path / "nope")]) == 2
     assert json.load(open(tmp_path / "cdc" / "config.json"))["strategy"]["name"] == "CDC"
+
+
+def test_the_gamma_pass_bins_the_gaussians_as_they_are_now(tiny_scene, tmp_path):
+    """Trainer._bins computes the scales and opacities once for a pass over the views, and again
+    after an in-place update or a new parameter tensor: its lists are always those of the current
+    Gaussians."""
+    from cdcgs.render import bin_view
+
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path / "run", strategy="cdc", iters=2))
+    trainer._setup()
+    model = trainer.model
+
+    def fresh():
+        with torch.no_grad():
+            args = {k: model.render_args()[k] for k in ("means", "quats", "scales", "opacities")}
+        return bin_view(**args, camera=trainer.cameras[1])
+
+    def same(a, b):
+        return all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("conics", "opacities", "sorted_gauss_ids"))
+
+    assert same(trainer._bins(1), fresh())
+    with torch.no_grad():
+        model.params["log_scales"].add_(0.3)  # what an optimizer step does
+    assert same(trainer._bins(1), fresh())
+    model.params["opacity_logits"] = torch.nn.Parameter(model.params["opacity_logits"].detach() - 2.0)  # surgery
+    assert same(trainer._bins(1), fresh())
+    other = Trainer(tiny_config(tiny_scene, tmp_path / "b", strategy="cdc", iters=2))
+    other._setup()
+    assert not same(trainer._bins(1), other._bins(1)), "the changes above reached the lists"

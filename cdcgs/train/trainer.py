@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import time
+import weakref
 
 import torch
 
@@ -199,6 +200,7 @@ class Trainer:
         self.complexity_maps = ComplexityMaps(self.scene.train, method, self.device) if method else None
         self.resolution = self._resolution_schedule()
         self._scaled = {}  # (view index, downscale) -> (camera, uint8 target) of the resolution schedule
+        self._shape, self._shape_key = None, None  # _bins' scales and opacities, and the parameters they are of
         if resume_state is None:
             self.model = GaussianModel.from_points(
                 self.scene.points,
@@ -326,10 +328,24 @@ class Trainer:
         )
 
     def _bins(self, view_index: int):
-        """The projection and tile lists of a training view, without colours or image (Γ passes)."""
-        args = self.model.render_args()
-        shape = {key: args[key] for key in ("means", "quats", "scales", "opacities")}
-        return bin_view(**shape, camera=self.cameras[view_index], antialiased=self.config.antialiased)
+        """The projection and tile lists of a training view, without colours or image (Γ passes).
+        A pass bins every training view of the same Gaussians: their scales and opacities are
+        computed once for it, again only when a parameter has changed (another tensor, or an
+        in-place update: torch's version counter; weak references, so that no old parameter is
+        kept alive or mistaken for a new one at its address)."""
+        params = [self.model.params[name] for name in self._SHAPE_PARAMS]
+        if self._shape_key is None or any(
+            ref() is not p or version != p._version for (ref, version), p in zip(self._shape_key, params)
+        ):
+            with torch.no_grad():
+                self._shape = {"scales": self.model.scales(), "opacities": self.model.opacities()}
+            self._shape_key = [(weakref.ref(p), p._version) for p in params]
+        means, quats = self.model.params["means"].detach(), self.model.params["quats"].detach()
+        return bin_view(
+            means, quats, **self._shape, camera=self.cameras[view_index], antialiased=self.config.antialiased
+        )
+
+    _SHAPE_PARAMS = ("log_scales", "opacity_logits")  # what the cached scales and opacities come from
 
     def state_dict(self) -> dict:
         return {
