@@ -160,10 +160,10 @@ def gather_counts_kernel(
 
 @wp.kernel(enable_backward=False)
 def emit_keys_kernel(
-    tile_rects: wp.array(dtype=wp.vec4i),
-    depth_order: wp.array(dtype=wp.int32),
     ordered_offsets: wp.array(dtype=wp.int32),
-    tile_counts: wp.array(dtype=wp.int32),
+    num_gaussians: int,
+    depth_order: wp.array(dtype=wp.int32),
+    tile_rects: wp.array(dtype=wp.vec4i),
     means2d: wp.array(dtype=wp.vec2),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=wp.float32),
@@ -172,33 +172,49 @@ def emit_keys_kernel(
     keys_out: wp.array(dtype=wp.int32),
     gauss_ids_out: wp.array(dtype=wp.int32),
 ):
-    """One (tile id, Gaussian) pair per tile a Gaussian touches (as ``count_tiles_kernel`` counted
-    them, with the same ``exact``), Gaussians in depth order.
+    """One thread per (tile id, Gaussian) pair, launched over all pairs: pair ``k`` belongs to the
+    first Gaussian (in depth order) whose inclusive offset ``ordered_offsets`` exceeds ``k``, and
+    is that Gaussian's ``r``-th tile in row-major order of its footprint (as ``count_tiles_kernel``
+    counted them, with the same ``exact``).
 
-    ``ordered_offsets`` is the inclusive prefix sum of the tile counts in depth order, so the pairs
-    come out ordered by depth (and neighbouring threads write neighbouring pairs); a stable sort by
-    tile id then leaves each tile's list in depth order.
+    The pairs come out ordered by depth, so a stable sort by tile id then leaves each tile's list in
+    depth order. One thread per pair, rather than one per Gaussian writing all of its pairs, keeps
+    a warp's work even: a Gaussian over hundreds of tiles no longer holds up the 31 small ones that
+    share its warp. The search for the Gaussian is a binary search whose first steps every thread
+    shares (cached), and the threads of one Gaussian walk the same rows together.
     """
-    j = wp.tid()
-    g = depth_order[j]
+    k = wp.tid()
+    lo = int(0)
+    hi = num_gaussians - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if ordered_offsets[mid] > k:
+            hi = mid
+        else:
+            lo = mid + 1
+    start = int(0)
+    if lo > 0:
+        start = ordered_offsets[lo - 1]
+    r = k - start
+    g = depth_order[lo]
     rect = tile_rects[g]
-    k = ordered_offsets[j] - tile_counts[g]
-    if exact != 0 and rect_area(rect) > 0:
+    key = int(0)
+    if exact != 0:
         mean2d = means2d[g]
         conic = conics[g]
         bound = footprint_bound(opacities[g])
         for ty in range(rect[2], rect[3]):
             span = row_span(mean2d, conic, bound, ty, rect)
-            for tx in range(span[0], span[1]):
-                keys_out[k] = ty * tiles_x + tx
-                gauss_ids_out[k] = g
-                k += 1
+            width = wp.max(span[1] - span[0], 0)
+            if r < width:
+                key = ty * tiles_x + span[0] + r
+                break
+            r -= width
     else:
-        for ty in range(rect[2], rect[3]):
-            for tx in range(rect[0], rect[1]):
-                keys_out[k] = ty * tiles_x + tx
-                gauss_ids_out[k] = g
-                k += 1
+        width = rect[1] - rect[0]
+        key = (rect[2] + r // width) * tiles_x + rect[0] + r % width
+    keys_out[k] = key
+    gauss_ids_out[k] = g
 
 
 @wp.kernel(enable_backward=False)
@@ -310,8 +326,8 @@ def bin_gaussians(
     if total > 0:
         wp.launch(
             emit_keys_kernel,
-            n,
-            inputs=[tile_rects, depth_order, ordered_offsets, tile_counts, means2d, conics, opacities, exact, tiles_x],
+            total,
+            inputs=[ordered_offsets, n, depth_order, tile_rects, means2d, conics, opacities, exact, tiles_x],
             outputs=[keys, gauss_ids],
             device=device,
         )
