@@ -234,6 +234,14 @@ def test_cdc_trains_and_logs(tiny_scene, tmp_path, schedule):
     for e in steps:
         assert e["cdc_densify"] == min(math.floor(0.01 * e["gaussians_before"]), e["densify_candidates"])
         assert e["cdc_prune"] == min(math.floor(0.01 * e["gaussians_before"]), e["prune_candidates"])
+    # Time: each refinement's seconds hold its Γ and Ψ seconds; the run's totals are their sums.
+    for e in steps:
+        assert e["gamma_seconds"] > 0 and e["psi_seconds"] > 0
+        assert e["gamma_seconds"] + e["psi_seconds"] <= e["refine_seconds"]
+    events = trainer.history["strategy"]
+    for key in ("refine_seconds", "gamma_seconds", "psi_seconds"):
+        assert result[key] == pytest.approx(sum(e.get(key, 0.0) for e in events))
+    assert 0 < result["gamma_seconds"] + result["psi_seconds"] < result["refine_seconds"] < result["train_seconds"]
 
 
 def test_compare_plots_runs(tiny_scene, tmp_path, capsys):

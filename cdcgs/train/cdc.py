@@ -19,6 +19,7 @@ paper, and the 3DGS baseline, is a configuration of this one class (:mod:`cdcgs.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import torch
@@ -218,10 +219,16 @@ class Consistency:
         )
 
     def measure(self, ctx: StepContext, state: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
-        """(Γ [N], Ψ [N], their statistics when logged) of the Gaussians as they are now."""
+        """(Γ [N], Ψ [N], a log) of the Gaussians as they are now: the seconds each took
+        (``gamma_seconds``, ``psi_seconds``, the device synchronised around each) and, when
+        logged, their correlations."""
+        device = ctx.model.device
+        start = _clock(device)
         gamma = self.complexity(ctx, state)
+        middle = _clock(device)
         psi = density(ctx.model.params["means"].detach(), self.neighbours)
-        return gamma, psi, (correlations(gamma, psi) if self.log_correlation else {})
+        log = {"gamma_seconds": middle - start, "psi_seconds": _clock(device) - middle}
+        return gamma, psi, {**(correlations(gamma, psi) if self.log_correlation else {}), **log}
 
     def consistency_draws(
         self, ctx: StepContext, gamma: torch.Tensor, psi: torch.Tensor
@@ -261,6 +268,13 @@ class Consistency:
             prune = draw(weights, math.floor(self.rho_prune * n), ctx.generator)
             log["cdc_prune"] = int(prune.sum())
         return densify, prune, log
+
+
+def _clock(device: torch.device) -> float:
+    """time.perf_counter() once the device's queued work is done."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
 
 
 @dataclass(kw_only=True)

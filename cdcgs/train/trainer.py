@@ -103,6 +103,25 @@ def _upgrade_checkpoint(state: dict, path: str) -> dict:
     return state
 
 
+def _check_batch(batch_size: int, world: int) -> None:
+    if world > batch_size:
+        raise OptionError(
+            f"--batch-size {batch_size} is smaller than the {world} processes: each "
+            f"renders at least one view per step (use --batch-size {world} or more)"
+        )
+
+
+def refinement_seconds(events: list[dict]) -> dict:
+    """Wall-clock seconds of the training spent in the strategy's refinements (densification,
+    pruning, resets, relocation) and, for CDC-GS, in its Γ passes and density (KNN) of them, summed
+    over the logged refinements (each timed with the device synchronised at both ends)."""
+    return {
+        "refine_seconds": sum(e.get("refine_seconds", 0.0) for e in events),
+        "gamma_seconds": sum(e.get("gamma_seconds", 0.0) for e in events),
+        "psi_seconds": sum(e.get("psi_seconds", 0.0) for e in events),
+    }
+
+
 class Trainer:
     """Runs one training from a :class:`TrainConfig` (``run()``), or resumes it.
 
@@ -506,8 +525,12 @@ class Trainer:
                 # On several processes the parameters too: a refinement may render views (CDC's Γ
                 # pass) that meet NaN on one process only, which must not stop it alone.
                 self.check_numbers(params=self.ranks.distributed)
+                self._synchronize()  # the step's kernels are not the refinement's time
+                refine_start = time.perf_counter()
                 log = self.strategy.refine(self._context(iteration), self.strategy_state)
                 if log:
+                    self._synchronize()
+                    log["refine_seconds"] = time.perf_counter() - refine_start
                     self.step_events.append((iteration, log))
                 if self.statistics is not None:
                     self.statistics.begin(self.strategy_state)  # the new Gaussians' statistics
@@ -633,16 +656,15 @@ class Trainer:
         """
         config = self.config
         if self._given_ranks is None:
+            # Before joining the group: a process that refuses the options after joining may
+            # close it while another is still connecting, which then fails with Gloo's error.
+            _check_batch(config.batch_size, _environment()[1])
             self.ranks = Ranks.from_environment(
                 self.device, config.dist_backend, config.dist_timeout, spread=config.device in ("auto", "cuda")
             )
         finished = False
         try:
-            if self.ranks.world > config.batch_size:
-                raise OptionError(
-                    f"--batch-size {config.batch_size} is smaller than the {self.ranks.world} processes: each "
-                    f"renders at least one view per step (use --batch-size {self.ranks.world} or more)"
-                )
+            _check_batch(config.batch_size, self.ranks.world)
             if self.ranks.is_main:
                 result = self._run_main()
             else:
@@ -803,6 +825,7 @@ class Trainer:
             "iterations": self.step,
             "train_seconds": self.train_seconds,
             "iterations_per_second": self.step / max(self.train_seconds, 1e-9),
+            **refinement_seconds(self.history["strategy"]),
             "peak_gpu_memory_gb": self.peak_memory["train"] / 1e9 if cuda else None,
             "peak_gpu_memory_eval_gb": self.peak_memory["eval"] / 1e9 if cuda and self.scene.test else None,
             "device": torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu",
