@@ -11,7 +11,10 @@ so that compiling kernels (Warp's, gsplat's JIT extension) stays out of the time
 - ``3dgs-gsplat-rates``: ``3dgs`` with gsplat's opacity learning rate and initial scales
   (``--lr-opacity-logits 0.05 --scale-rule 3dgs``), the row to set beside gsplat;
 - ``gsplat``: gsplat's DefaultStrategy through ``benchmarks/peers/gsplat_train.py`` (the same data,
-  loss, initialisation and evaluation); skipped, and said so, where gsplat or CUDA is missing.
+  loss, initialisation and evaluation); skipped, and said so, where gsplat or CUDA is missing;
+- any of these with options of its command after ``@``, each ``NAME=VALUE`` or ``NAME`` (a flag):
+  ``cdc@scale-rule=3dgs``, ``3dgs@optimizer=selective@seed=1``, ``gsplat@strategy=mcmc@cap-max=901363``
+  (its folder: ``cdc_scale-rule-3dgs``, ...). A run's own ``seed`` replaces ``--seed``.
 
 The table (training time, it/s, test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, peak GPU
 memory, with the machine, date and commit) is printed, written to ``--out``/table.md and, with
@@ -37,16 +40,37 @@ GSPLAT_RATES = ["--lr-opacity-logits", "0.05", "--scale-rule", "3dgs"]
 DEFAULT_RUNS = ["3dgs", "3dgs-gsplat-rates", "cdc", "gsplat"]
 
 
+def parse_run(run: str) -> tuple[str, list[str]]:
+    """(base run, its own options as command-line arguments) of ``NAME@OPTION=VALUE@FLAG...``."""
+    base, *options = run.split("@")
+    extra = []
+    for option in options:
+        name, equals, value = option.partition("=")
+        if not name or name.startswith("-") or (equals and not value):
+            raise ValueError(f"run {run!r}: {option!r} is not NAME=VALUE or NAME")
+        extra += [f"--{name}", value] if equals else [f"--{name}"]
+    return base, extra
+
+
+def folder_name(run: str) -> str:
+    """The run's folder under --out: ``cdc@scale-rule=3dgs`` -> ``cdc_scale-rule-3dgs``."""
+    return run.replace("@", "_").replace("=", "-")
+
+
 def command(run: str, args, out: str, iters: int) -> list[str]:
     """The command line of one run."""
-    common = ["--data", args.data, "--out", out, "--iters", str(iters), "--seed", str(args.seed)]
+    base, own = parse_run(run)
+    seed = own[own.index("--seed") + 1] if "--seed" in own else str(args.seed)
+    own = [a for i, a in enumerate(own) if a != "--seed" and (i == 0 or own[i - 1] != "--seed")]
+    common = ["--data", args.data, "--out", out, "--iters", str(iters), "--seed", seed]
     if args.images:
         common += ["--images", args.images]
-    if run == "gsplat":
-        return [sys.executable, os.path.join(HERE, "peers", "gsplat_train.py"), *common, "--no-progress", "--overwrite"]
-    strategy, extra = (run, []) if run != "3dgs-gsplat-rates" else ("3dgs", GSPLAT_RATES)
+    if base == "gsplat":
+        peer = os.path.join(HERE, "peers", "gsplat_train.py")
+        return [sys.executable, peer, *common, "--no-progress", "--overwrite", *own]
+    strategy, extra = (base, []) if base != "3dgs-gsplat-rates" else ("3dgs", GSPLAT_RATES)
     train = [sys.executable, "-m", "cdcgs", "train", *common, "--strategy", strategy, *extra]
-    return [*train, "--no-progress", "--checkpoint-every", "0", "--overwrite", *args.train_options]
+    return [*train, "--no-progress", "--checkpoint-every", "0", "--overwrite", *args.train_options, *own]
 
 
 def gsplat_missing() -> str | None:
@@ -63,18 +87,18 @@ def gsplat_missing() -> str | None:
 
 def train(run: str, args) -> dict:
     """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}."""
-    folder = os.path.join(args.out, run)
+    folder = os.path.join(args.out, folder_name(run))
     metrics_path = os.path.join(folder, "metrics.json")
     if os.path.isfile(metrics_path) and not args.retrain:
         print(f"{run}: read the finished run in {folder}", flush=True)
         with open(metrics_path) as f:
             return json.load(f)
-    if run == "gsplat":
+    if parse_run(run)[0] == "gsplat":
         why = gsplat_missing()
         if why:
             print(f"gsplat: skipped ({why})", flush=True)
             return {"skipped": why}
-    scratch = os.path.join(args.out, f".warm-{run}")
+    scratch = os.path.join(args.out, f".warm-{folder_name(run)}")
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
     for iters, out in ((min(20, args.iters), scratch), (args.iters, folder)):
         print(f"{run}: {' '.join(command(run, args, out, iters)[1:])}", flush=True)
@@ -173,9 +197,16 @@ def main(argv=None) -> int:
     check_common_arguments(parser, args)
     from cdcgs.train.presets import PRESETS
 
-    unknown = [r for r in args.runs if r not in (*PRESETS, "3dgs-gsplat-rates", "gsplat")]
+    unknown = []
+    for run in args.runs:
+        try:
+            base, _ = parse_run(run)
+        except ValueError as err:
+            parser.error(f"--runs: {err}")
+        if base not in (*PRESETS, "3dgs-gsplat-rates", "gsplat"):
+            unknown.append(run)
     if unknown:
-        parser.error(f"--runs: unknown {', '.join(unknown)} (presets, 3dgs-gsplat-rates or gsplat)")
+        parser.error(f"--runs: unknown {', '.join(unknown)} (presets, 3dgs-gsplat-rates or gsplat, each with @options)")
     os.makedirs(args.out, exist_ok=True)
     rows = {run: train(run, args) for run in args.runs}
     machines = {m["device"] for m in rows.values() if "device" in m}

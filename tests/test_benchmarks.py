@@ -163,6 +163,14 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     assert "3dgs: read the finished run" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         training_table.main([*argv, "--runs", "nonsense"])
+    # A run with options of its own: its folder, its command line, its own seed over --seed.
+    assert training_table.main([*argv, "--train-option=--device=cpu", "--runs", "3dgs@sh-every=5@seed=3"]) == 0
+    config = json.loads((out / "3dgs_sh-every-5_seed-3" / "config.json").read_text())["train"]
+    assert (config["sh_every"], config["seed"], config["strategy"]) == (5, 3, "3dgs")
+    assert "| 3dgs@sh-every=5@seed=3 |" in docs.read_text()
+    for bad in ("3dgs@=1", "3dgs@--seed=1", "3dgs@seed=", "nonsense@seed=1"):
+        with pytest.raises(SystemExit):
+            training_table.main([*argv, "--runs", bad])
 
 
 def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_path, capsys):
