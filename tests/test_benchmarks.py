@@ -1,10 +1,13 @@
 """The benchmark suite runs end to end (on the CPU, tiny sizes) and sorts kernels into stages."""
 
+import argparse
 import json
 import os
 import sys
 
+import numpy as np
 import pytest
+import torch
 
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.train import DataConfig, TrainConfig, Trainer
@@ -198,3 +201,37 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
     for bad in (["--configs", "2x1"], ["--configs", "two"], ["--strategies", "nonsense"]):
         with pytest.raises(SystemExit):
             scaling_table.main([*argv, *bad])
+
+
+def test_eval_memory_measures_every_setting_and_its_own_process_gets_its_variable(tmp_path, capsys):
+    import eval_memory
+
+    scene = make_procedural_scene(tmp_path / "scene", views=16, width=48, height=36, points=300)
+    out = tmp_path / "eval_memory.json"
+    argv = ["--device", "cpu", "--data", str(scene), "--weights", "random", "--repeats", "1"]
+    eval_memory.main([*argv, "--settings", "native", "cudnn", "wscap", "--wscap", "64", "--out", str(out)])
+    report = json.loads(out.read_text())
+    rows = report["rows"]
+    parts = ["lpips_vgg", "lpips_alex", "ssim", "psnr"]
+    assert [(r["setting"], r["part"]) for r in rows] == [(s, p) for s in ("wscap", "native", "cudnn") for p in parts]
+    assert all(r["environment"] == {"CUDNN_CONV_WSCAP_DBG": "64"} for r in rows if r["setting"] == "wscap")
+    assert all(r[key] is None for r in rows for key in eval_memory.MEMORY_KEYS), "no GPU memory on the CPU"
+    assert all(r["first_s"] > 0 and r["then_s"] >= 0 for r in rows)
+    # On the CPU every setting is the same computation, in this process or its own.
+    assert all(r["max_abs_diff"] == 0 for r in rows)
+    # The scores are those of the two test views: PSNR by numpy, LPIPS by the module one pair at a time.
+    args = argparse.Namespace(data=str(scene), factor=None, images=2, seed=0)
+    images, targets, _ = eval_memory.image_pairs(args, torch.device("cpu"))
+    assert len(images) == 2
+    by_part = {r["part"]: r["scores"] for r in rows if r["setting"] == "native"}
+    expected_psnr = [-10 * np.log10(np.mean((x.numpy() - y.numpy()) ** 2)) for x, y in zip(images, targets)]
+    assert by_part["psnr"] == pytest.approx(expected_psnr, abs=1e-4)
+    for name in ("vgg", "alex"):
+        net = eval_memory.random_lpips(name, seed=0)
+        with torch.no_grad():
+            direct = [net(x.permute(2, 0, 1)[None], y.permute(2, 0, 1)[None]).item() for x, y in zip(images, targets)]
+        assert by_part[f"lpips_{name}"] == pytest.approx(direct, rel=1e-5)
+        assert all(score > 0 for score in direct)
+    assert all(-1 <= score <= 1 for score in by_part["ssim"])
+    printed = capsys.readouterr().out
+    assert "max|d|" in printed and "CUDNN_CONV_WSCAP_DBG=64" in printed

@@ -15,7 +15,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from cdcgs.errors import InputError
 from cdcgs.lpips import LPIPS, WeightsUnavailable, load_lpips
 from cdcgs.lpips import weights as lpips_weights
-from cdcgs.lpips.network import NETS, SCALE, SHIFT, full_float32
+from cdcgs.lpips.network import NETS, SCALE, SHIFT, float32_convolutions
 
 
 def converted(net: str) -> LPIPS:
@@ -88,23 +88,69 @@ def image_pair(size=(40, 44), seed=1):
 
 
 @pytest.mark.parametrize("net", ["vgg", "alex"])
-def test_module_equals_the_float64_reference_with_random_weights(net):
+def test_module_equals_the_float64_reference_with_random_weights(net, device):
     model = random_network(net)
     a, b = image_pair()
     expected = reference_lpips({k: v.double() for k, v in model.state_dict().items()}, NETS[net], a, b)
-    ours = model(torch.from_numpy(a)[None], torch.from_numpy(b)[None]).item()
+    ours = model.to(device)(torch.from_numpy(a)[None].to(device), torch.from_numpy(b)[None].to(device)).item()
     # Within float64 rounding, and the float32 shift and scale constants (as the reference keeps them).
     assert ours == pytest.approx(expected, rel=1e-7, abs=1e-9)
 
 
 @pytest.mark.parametrize("net", ["vgg", "alex"])
-def test_module_equals_the_float64_reference_with_the_real_weights(net):
+def test_module_equals_the_float64_reference_with_the_real_weights(net, device):
     model = converted(net)
     a, b = image_pair(seed=2)
     expected = reference_lpips({k: v.double() for k, v in model.state_dict().items()}, NETS[net], a, b)
-    as_float32 = model.float()(torch.from_numpy(a).float()[None], torch.from_numpy(b).float()[None]).item()
+    # Channels last, as the evaluation's batches of [H, W, 3] images come.
+    a32, b32 = (torch.from_numpy(x).float()[None].to(device, memory_format=torch.channels_last) for x in (a, b))
+    as_float32 = model.float().to(device)(a32, b32).item()
     assert as_float32 == pytest.approx(expected, abs=1e-6)
     assert 0.0 < expected < 1.0
+
+
+def conv_memory(layers, images: int, height: int, width: int) -> tuple[int, int]:
+    """Bytes, in float32, of the input batch and every convolution's and max-pool's output for
+    ``images`` images of height x width, and of the largest im2col buffer of one image ([in
+    channels x k x k, output pixels]), from the layer table alone."""
+    outputs, columns, channels, h, w = 4 * images * 3 * height * width, 0, 3, height, width
+    for out, kernel, stride, padding, pool, _ in layers:
+        if pool is not None:
+            h, w = (h - pool[0]) // pool[1] + 1, (w - pool[0]) // pool[1] + 1
+            outputs += 4 * images * channels * h * w
+        h, w = (h + 2 * padding - kernel) // stride + 1, (w + 2 * padding - kernel) // stride + 1
+        outputs += 4 * images * out * h * w
+        columns = max(columns, 4 * channels * kernel * kernel * h * w)
+        channels = out
+    return outputs, columns
+
+
+@pytest.mark.parametrize("net", ["vgg", "alex"])
+def test_memory_on_a_gpu_is_bounded_by_the_layers(net, device):
+    """One evaluation batch (two 800 x 533 pairs, channels last, as the evaluation's [H, W, 3]
+    images come) takes at most three times the input batch and every layer's output (inputs
+    copied to contiguous, ReLU beside its convolution, the taps kept, the distance's temporaries),
+    one im2col buffer and cuBLAS's workspaces (64 MiB): 7.2 GB for VGG, 0.41 GB for AlexNet. On
+    cuDNN the evaluations peaked at 37.5 GB (H100), its workspaces bounded by the free memory."""
+    if device != "cuda":
+        pytest.skip("measures GPU memory")
+    model = random_network(net).float().to(device)
+    generator = torch.Generator().manual_seed(5)
+    a = torch.rand(2, 533, 800, 3, generator=generator).to(device)
+    b = (a + 0.05 * torch.randn(a.shape, generator=generator).to(device)).clamp(0, 1)
+    a, b = a.permute(0, 3, 1, 2), b.permute(0, 3, 1, 2)
+    outputs, columns = conv_memory(NETS[net], 4, 533, 800)  # the pair's two halves go through as one batch of 4
+    torch.cuda.synchronize(device)
+    torch.cuda.empty_cache()
+    torch.cuda.reset_peak_memory_stats(device)
+    before = torch.cuda.memory_allocated(device)
+    with torch.no_grad():
+        scores = model(a, b)
+    torch.cuda.synchronize(device)
+    extra = torch.cuda.max_memory_allocated(device) - before
+    assert torch.isfinite(scores).all() and (scores > 0).all()
+    bound = 3 * outputs + columns + 64 * 2**20
+    assert extra <= bound, f"{extra / 1e9:.2f} GB above the {bound / 1e9:.2f} GB bound"
 
 
 @pytest.mark.parametrize("net", ["vgg", "alex"])
@@ -146,21 +192,48 @@ def test_bad_image_pairs_are_refused(a, b, message):
 
 
 @pytest.mark.parametrize("before", [False, True])
-def test_lpips_runs_in_full_float32_on_deterministic_algorithms_and_restores_the_flags(before):
-    cudnn, matmul = torch.backends.cudnn, torch.backends.cuda.matmul
+@pytest.mark.parametrize("cudnn", [False, True])
+def test_lpips_runs_in_full_float32_off_cudnn_and_restores_the_flags(before, cudnn):
+    backends = torch.backends
 
-    def flags():  # TF32 in convolutions, in matrix products; deterministic; benchmark
-        return cudnn.allow_tf32, matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark
+    def flags():  # cuDNN on; TF32 in convolutions, in matrix products; deterministic; benchmark
+        return (
+            backends.cudnn.enabled,
+            backends.cudnn.allow_tf32,
+            backends.cuda.matmul.allow_tf32,
+            backends.cudnn.deterministic,
+            backends.cudnn.benchmark,
+        )
+
+    def set_flags(values):
+        (
+            backends.cudnn.enabled,
+            backends.cudnn.allow_tf32,
+            backends.cuda.matmul.allow_tf32,
+            backends.cudnn.deterministic,
+            backends.cudnn.benchmark,
+        ) = values
 
     saved = flags()
+    outside = (not before, before, before, not before, before)
     try:
-        cudnn.allow_tf32 = matmul.allow_tf32 = cudnn.benchmark = before
-        cudnn.deterministic = not before
-        with full_float32():
-            assert flags() == (False, False, True, False)
-        assert flags() == (before, before, not before, before)
+        set_flags(outside)
+        with float32_convolutions(cudnn=cudnn):
+            assert flags() == (cudnn, False, False, True, False)
+        assert flags() == outside
+        with pytest.raises(RuntimeError, match="inside"), float32_convolutions(cudnn=cudnn):
+            raise RuntimeError("inside")
+        assert flags() == outside, "an error inside leaves the flags as they were"
+        seen = []
+        model = random_network("alex").float()
+        model.cudnn = cudnn
+        model.features = lambda x: seen.append(flags()) or LPIPS.features(model, x)
+        x = torch.rand(1, 3, 32, 32)
+        model(x, x)
+        assert seen == [(cudnn, False, False, True, False)], "the forward runs inside the context"
+        assert flags() == outside
     finally:
-        cudnn.allow_tf32, matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark = saved
+        set_flags(saved)
 
 
 def test_smallest_images_each_net_takes():

@@ -14,7 +14,7 @@ import contextlib
 import torch
 from torch import nn
 
-__all__ = ["ALEX_LAYERS", "LPIPS", "NETS", "SCALE", "SHIFT", "VGG_LAYERS", "full_float32"]
+__all__ = ["ALEX_LAYERS", "LPIPS", "NETS", "SCALE", "SHIFT", "VGG_LAYERS", "float32_convolutions"]
 
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
@@ -49,24 +49,44 @@ NETS = {"vgg": VGG_LAYERS, "alex": ALEX_LAYERS}
 
 
 @contextlib.contextmanager
-def full_float32():
+def float32_convolutions(cudnn: bool = False):
     """Convolutions and matrix products in full float32, not TF32 (which cuDNN uses by default on
     Ampere and newer GPUs, and which moves LPIPS scores by up to 1e-4): the scores are then the
     same on every GPU and on the CPU, to about 1e-6.
 
-    cuDNN's convolutions are also restricted to its deterministic algorithms, so that a score
-    does not depend on the run. Without that restriction PyTorch takes the first algorithm of
-    cuDNN's heuristics whose workspace it can allocate, and on a large GPU that workspace may be
-    tens of GB (pytorch/pytorch#49207); an evaluation's peak memory was 37 GB against 2.8 GB for
-    the training (bonsai, H100), which the deterministic algorithms are meant to avoid."""
-    cudnn = torch.backends.cudnn
-    saved = cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark
-    cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
-    cudnn.deterministic, cudnn.benchmark = True, False
+    On a GPU the convolutions run on torch's own kernels, not cuDNN's (``cudnn=False``, the
+    default): one im2col buffer per convolution, looped over the images, and a cuBLAS GEMM, so the
+    memory is bounded by the layer sizes, not by what cuDNN asks for. The largest im2col buffer
+    of LPIPS-VGG at 800 x 533 pixels is 64 x 9 rows of 800 x 533 floats, 0.98 GB. With cuDNN,
+    PyTorch takes the first engine of cuDNN's heuristics whose workspace it can allocate, which on
+    a large GPU may be tens of GB (pytorch/pytorch#49207): the evaluations of the bonsai trainings
+    (37 views of 800 x 533, LPIPS in batches of two images, cuDNN's deterministic algorithms and
+    benchmark mode off) peaked at 37.5 GB on an H100 against 1-2.8 GB for the training, whatever
+    the number of Gaussians. The memory and the time of the change are not yet measured on a GPU
+    (``benchmarks/eval_memory.py`` measures both). ``cudnn=True`` keeps cuDNN, restricted to its
+    deterministic algorithms with benchmark mode off: the settings before the change, for
+    comparison. On the CPU both are the same."""
+    backends = torch.backends
+    saved = (
+        backends.cudnn.enabled,
+        backends.cudnn.allow_tf32,
+        backends.cuda.matmul.allow_tf32,
+        backends.cudnn.deterministic,
+        backends.cudnn.benchmark,
+    )
+    backends.cudnn.enabled = cudnn
+    backends.cudnn.allow_tf32 = backends.cuda.matmul.allow_tf32 = False
+    backends.cudnn.deterministic, backends.cudnn.benchmark = True, False
     try:
         yield
     finally:
-        cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32, cudnn.deterministic, cudnn.benchmark = saved
+        (
+            backends.cudnn.enabled,
+            backends.cudnn.allow_tf32,
+            backends.cuda.matmul.allow_tf32,
+            backends.cudnn.deterministic,
+            backends.cudnn.benchmark,
+        ) = saved
 
 
 class LPIPS(nn.Module):
@@ -80,10 +100,15 @@ class LPIPS(nn.Module):
     ``forward(a, b)``: images [B, 3, H, W] in [0, 1] (mapped to [-1, 1] inside, as the reference
     does with ``normalize=True``) -> [B] distances. Both images of a pair must have one size, at
     least 31 x 31 pixels for "alex" and 16 x 16 for "vgg" so that every tap has a pixel.
+
+    ``cudnn``: run the convolutions on cuDNN instead of torch's own kernels (see
+    :func:`float32_convolutions`; off by default, as the evaluation runs them); an attribute that
+    may also be set after loading.
     """
 
-    def __init__(self, net: str = "vgg"):
+    def __init__(self, net: str = "vgg", *, cudnn: bool = False):
         super().__init__()
+        self.cudnn = cudnn
         if net not in NETS:
             raise ValueError(f"LPIPS net must be one of {', '.join(NETS)}, got {net!r}")
         self.net = net
@@ -119,7 +144,7 @@ class LPIPS(nn.Module):
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         self._check(a, b)
-        with full_float32():
+        with float32_convolutions(cudnn=self.cudnn):
             return self._distance(a, b)
 
     def _distance(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

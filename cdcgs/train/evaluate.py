@@ -31,11 +31,15 @@ class LpipsMetric:
 
     ``nets[name]`` is the network, or absent when its weights could not be loaded; ``note`` then
     says why and how to get them. A missing network is reported as null, never estimated.
+    ``nets`` given ({name: LPIPS}) are used as they are, none loaded (a benchmark's or a test's).
     """
 
-    def __init__(self, device):
+    def __init__(self, device, nets: dict | None = None):
         from ..lpips import WeightsUnavailable, load_lpips
 
+        if nets is not None:
+            self.nets, self.note = dict(nets), None
+            return
         self.nets, reasons = {}, []
         for name in LPIPS_NETS:
             try:
