@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..lpips.network import float32_convolutions
 from ..render import prepare_camera, rasterize
 from .loss import psnr, ssim
 from .outputs import view_stem
@@ -162,7 +163,9 @@ def evaluate(
     for view in views:
         image, _, _ = render(model, view, background, antialiased)
         gt = view.image.to(device).float() / 255.0
-        per_view.append({"name": view.name, "psnr": psnr(image, gt).item(), "ssim": ssim(image, gt).item()})
+        with float32_convolutions():  # kornia's SSIM is a convolution too: full float32, no cuDNN workspace
+            score = ssim(image, gt).item()
+        per_view.append({"name": view.name, "psnr": psnr(image, gt).item(), "ssim": score})
         if lpips.nets:
             pending.append((per_view[-1], image, gt))  # scored a batch at a time, not all kept
             if len(pending) == LPIPS_BATCH:
