@@ -107,6 +107,7 @@ def test_presets_cover_the_variants_table():
         "cdc-compact",
         "mcmc",
         "mcmc-cdc",
+        "fast",  # not a variant of the paper: issue 21's speed features, test_resolution.py
     }
     cdc = CDC.from_preset("cdc")
     assert (

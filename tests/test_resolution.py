@@ -143,6 +143,26 @@ def test_a_whole_run_with_the_schedule_and_the_refusal_with_online_complexity(ti
     assert not (tmp_path / "cdc").exists() or not any((tmp_path / "cdc").iterdir())
 
 
+def test_the_fast_preset_trains_with_its_options_and_an_option_given_wins(tiny_scene, tmp_path):
+    """``fast``: 3DGS's rules under DashGaussian's resolution schedule and budget, with selective
+    Adam, set by the preset where the run leaves them at none; config.json records them; an
+    option the user gives wins, and a run that asks for the budget without the schedule is refused."""
+
+    def trained(name, **options):
+        Trainer(tiny_config(tiny_scene, tmp_path / name, **options), SHORT).run()
+        return json.loads((tmp_path / name / "config.json").read_text())
+
+    fast = trained("fast", iters=30, strategy="fast")
+    assert (fast["train"]["optimizer"], fast["train"]["resolution_schedule"]) == ("selective", "dash")
+    assert fast["strategy"]["budget_schedule"] == "dash" and not fast["strategy"]["cdc_densify"]
+    mine = trained("mine", iters=5, strategy="fast", optimizer="adam")
+    assert (mine["train"]["optimizer"], mine["train"]["resolution_schedule"]) == ("adam", "dash")
+    plain = trained("plain", iters=5)
+    assert (plain["train"]["optimizer"], plain["train"]["resolution_schedule"]) == ("adam", "none")
+    with pytest.raises(OptionError, match="needs --resolution-schedule dash"):
+        trained("refused", iters=5, strategy="fast", resolution_schedule="none")
+
+
 def test_the_budget_rises_with_the_resolution():
     # From 1000 Gaussians to a bound of 11000, densifying every 100 steps until 15000.
     def budget(step, scale, count):

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field
 
 from ..errors import OptionError
-from .presets import PRESETS, canonical_name
+from .presets import PRESET_TRAINING, PRESETS, TRAINING_DEFAULTS, canonical_name
 
 __all__ = [
     "BACKGROUNDS",
@@ -161,14 +161,14 @@ class TrainConfig:
         True,
         "the loss as Warp kernels, two passes forward and two backward (off: kornia's SSIM and torch's L1, the same loss in about 60 torch kernels)",
     )
-    optimizer: str = option(
-        "adam",
-        "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; faster, not exact)",
+    optimizer: str | None = option(
+        None,
+        "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; faster, not exact) (none: the preset's, adam; selective for fast)",
         choices=OPTIMIZERS,
     )
-    resolution_schedule: str = option(
-        "none",
-        "none, or dash: DashGaussian's schedule, low resolution first, raised with the photos' frequency content until densification ends, and the position learning rate's decay held until half resolution",
+    resolution_schedule: str | None = option(
+        None,
+        "none, or dash: DashGaussian's schedule, low resolution first, raised with the photos' frequency content until densification ends, and the position learning rate's decay held until half resolution (none: the preset's, none; dash for fast)",
         choices=RESOLUTION_SCHEDULES,
     )
     batch_size: int = option(
@@ -241,26 +241,32 @@ def batch_rule(config: TrainConfig) -> tuple[float, float, float]:
 
 def resolve_defaults(config: TrainConfig, strategy, saved: dict | None = None) -> TrainConfig:
     """``config`` with every option left at none (``init_opacity``, ``scale_rule``, ``init_scale``,
-    ``lr.opacity_logits``) set to the value of the run being resumed (``saved``, its
-    :func:`config_to_dict`), else to ``strategy``'s (its ``training_defaults`` dict): a resumed run
-    goes on with what it started with, also when the defaults changed in between."""
+    ``lr.opacity_logits``, ``optimizer``, ``resolution_schedule``) set to the value of the run
+    being resumed (``saved``, its :func:`config_to_dict`), else to its preset's
+    (:data:`cdcgs.train.presets.PRESET_TRAINING`), else to ``strategy``'s (its
+    ``training_defaults`` dict), else to :data:`cdcgs.train.presets.TRAINING_DEFAULTS`: a resumed
+    run goes on with what it started with, also when the defaults changed in between."""
     saved = saved or {}
     defaults = {
         "init_opacity": saved.get("init_opacity"),
         "scale_rule": saved.get("scale_rule"),
         "init_scale": saved.get("init_scale"),
         "opacity_lr": saved.get("lr", {}).get("opacity_logits"),
+        "optimizer": saved.get("optimizer"),
+        "resolution_schedule": saved.get("resolution_schedule"),
     }
-    defaults = {k: strategy.training_defaults[k] if v is None else v for k, v in defaults.items()}
+    preset = {**TRAINING_DEFAULTS, **strategy.training_defaults, **PRESET_TRAINING.get(config.strategy, {})}
+    defaults = {k: preset[k] if v is None else v for k, v in defaults.items()}
     lr = config.lr
     if lr.opacity_logits is None:
         lr = dataclasses.replace(lr, opacity_logits=defaults["opacity_lr"])
     return dataclasses.replace(
         config,
         lr=lr,
-        init_opacity=defaults["init_opacity"] if config.init_opacity is None else config.init_opacity,
-        scale_rule=defaults["scale_rule"] if config.scale_rule is None else config.scale_rule,
-        init_scale=defaults["init_scale"] if config.init_scale is None else config.init_scale,
+        **{
+            name: defaults[name] if getattr(config, name) is None else getattr(config, name)
+            for name in ("init_opacity", "scale_rule", "init_scale", "optimizer", "resolution_schedule")
+        },
     )
 
 

@@ -15,7 +15,15 @@ import dataclasses
 
 from ..errors import OptionError
 
-__all__ = ["ALIASES", "PRESETS", "PRESET_CLASS", "build_preset", "canonical_name"]
+__all__ = [
+    "ALIASES",
+    "PRESETS",
+    "PRESET_CLASS",
+    "PRESET_TRAINING",
+    "TRAINING_DEFAULTS",
+    "build_preset",
+    "canonical_name",
+]
 
 _BASELINE = {
     "cdc_densify": False,
@@ -38,7 +46,17 @@ PRESETS: dict[str, dict] = {
     "cdc-compact": {"centre": "quantile", "rho_prune": 0.5},
     "mcmc": dict(_MCMC),
     "mcmc-cdc": {**_MCMC, "cdc_densify": True, "cdc_prune": True, "log_correlation": True},
+    "fast": {**_BASELINE, "budget_schedule": "dash"},
 }
+
+# Training options (not the strategy's) that a preset sets where the run leaves them at none.
+# ``fast``: the speed features of issue 21 together, 3DGS's densification under DashGaussian's
+# resolution schedule and primitive budget, with Taming 3DGS's selective Adam. None of the three
+# is exact; docs/benchmarks.md has what each costs and saves.
+PRESET_TRAINING: dict[str, dict] = {"fast": {"optimizer": "selective", "resolution_schedule": "dash"}}
+
+# The training options' values where neither the run, its preset nor its strategy sets them.
+TRAINING_DEFAULTS: dict = {"optimizer": "adam", "resolution_schedule": "none"}
 
 # The strategy class of each preset that is not CDC (cdcgs.train.strategies.STRATEGY_CLASSES).
 PRESET_CLASS: dict[str, str] = {"mcmc": "MCMC", "mcmc-cdc": "MCMC"}

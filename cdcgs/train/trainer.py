@@ -187,15 +187,15 @@ class Trainer:
             self.strategy_options = resume_state.get("strategy_options", self.strategy_options)
         self.strategy = make_strategy(config.strategy, self.strategy_options)
         self.strategy.check(config.iters)
+        # The options left at none take the resumed run's values, else the preset's or the
+        # strategy's; config.json records them.
+        saved = resume_state.get("config") if resume_state else None
+        self.config = config = resolve_defaults(config, self.strategy, saved)
         if getattr(self.strategy, "budget_schedule", "none") == "dash" and config.resolution_schedule != "dash":
             raise OptionError(
                 "--budget-schedule dash grows the Gaussian budget with the training resolution: it needs "
                 "--resolution-schedule dash"
             )
-        # The options left at none take the resumed run's values, else the strategy's; config.json
-        # records them.
-        saved = resume_state.get("config") if resume_state else None
-        self.config = config = resolve_defaults(config, self.strategy, saved)
         d = config.data
         self.scene = load_scene(
             d.data,
