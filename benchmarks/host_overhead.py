@@ -42,23 +42,26 @@ from profile_step import PARTS, PartClock, instrumented, prepared
 
 from cdcgs.datasets.procedural import make_procedural_scene
 
-KERNELS = "Warp kernels running on the CPU"
+KERNELS = "Warp kernels, sorts and scans running on the CPU"
 
 
 @contextlib.contextmanager
 def cpu_kernels_timed(clock: PartClock):
     """On the CPU, Warp runs a kernel inside ``wp.launch`` (its ``invoke``: the argument struct
-    and the native call): time it as a part of its own, which the other parts then leave out.
-    Warp's private functions (1.19), patched for the duration; on CUDA they are not called."""
-    names = ("invoke", "invoke_cpu_blocks")
-    real = {name: getattr(warp_context, name) for name in names}
-    for name, fn in real.items():
-        setattr(warp_context, name, clock.wrap(KERNELS, fn))
+    and the native call), and a radix sort or a scan in a native call: device work on a GPU, timed
+    here as a part of its own, which the other parts then leave out. Warp's private functions
+    (1.19), patched for the duration; on CUDA they are not called."""
+    core = warp_context.runtime.core
+    natives = [name for name in dir(core) if name.startswith(("wp_radix_sort_pairs_", "wp_array_scan_"))]
+    real = [(warp_context, name, getattr(warp_context, name)) for name in ("invoke", "invoke_cpu_blocks")]
+    real += [(core, name, getattr(core, name)) for name in natives if name.endswith("_host")]
+    for owner, name, fn in real:
+        setattr(owner, name, clock.wrap(KERNELS, fn))
     try:
         yield clock
     finally:
-        for name, fn in real.items():
-            setattr(warp_context, name, fn)
+        for owner, name, fn in real:
+            setattr(owner, name, fn)
 
 
 def host_times(trainer, steps: int) -> list[float]:
