@@ -325,6 +325,56 @@ def test_warp_still_pins_tensors_where_unpin_descriptor_looks():
         unpin_descriptor(Foreign())
 
 
+def test_recorded_launches_run_each_call_with_its_own_arguments(device):
+    """``_interop.launch`` records a kernel's first launch and replays the record: every later call
+    runs with its own launch size, arrays and numbers (a replay that kept any of an earlier call's
+    would flag the wrong input, or miss one), as ``wp.launch`` runs it, and no record keeps an
+    array's memory alive."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from cdcgs._interop import launch, warp_scope, wp_arg, wp_array
+    from cdcgs.kernels._checks import find_nonfinite_kernel
+
+    rng = np.random.default_rng(7)
+
+    def check(threads, bad, in_place=None):
+        """Flags of six inputs where those in ``bad`` hold one NaN, by ``launch`` and by ``wp.launch``."""
+        values = [torch.tensor(rng.normal(size=int(rng.integers(5, 40))), dtype=torch.float32) for _ in range(6)]
+        values = in_place or [v.to(device) for v in values]
+        for k, v in enumerate(values):
+            v.copy_(torch.randn(v.shape[0], device=device))
+            if k in bad:
+                v[-1] = float("nan")  # the last value: reached by the last thread's stride only
+        flags = [torch.zeros(6, dtype=torch.int32, device=device) for _ in range(2)]
+        with warp_scope(torch.device(device)):
+            # one input as a Warp array (held as its descriptor), the others as cached descriptors
+            arguments = [wp_array(values[0], wp.float32), *(wp_arg(v, wp.float32) for v in values[1:]), threads]
+            launch(find_nonfinite_kernel, threads, inputs=arguments, outputs=[wp_arg(flags[0], wp.int32)])
+            wp.launch(find_nonfinite_kernel, threads, inputs=arguments, outputs=[wp_arg(flags[1], wp.int32)])
+        assert flags[0].tolist() == flags[1].tolist() == [int(k in bad) for k in range(6)], (threads, bad)
+        return values
+
+    check(3, {2})  # recorded
+    check(1, {4})  # replayed: other arrays, launch size and thread count
+    kept = check(64, {0, 5})
+    check(64, {1}, in_place=kept)  # the same arrays again, their values changed
+    with warp_scope(torch.device(device)):  # an empty launch runs nothing and records nothing
+        launch(find_nonfinite_kernel, 0, inputs=[wp_arg(kept[0], wp.float32)] * 6 + [0], outputs=[None])
+    tensor = torch.zeros(10, device=device)
+    alive = weakref.ref(tensor)
+    with warp_scope(torch.device(device)):
+        flags = torch.zeros(6, dtype=torch.int32, device=device)
+        launch(
+            find_nonfinite_kernel, 2, inputs=[wp_array(tensor, wp.float32)] * 6 + [2], outputs=[wp_arg(flags, wp.int32)]
+        )
+    del tensor
+    gc.collect()
+    assert alive() is None, "a recorded launch kept its Warp array's tensor alive"
+
+
 @pytest.mark.parametrize("threads", [1, 3, 64])
 def test_nonfinite_check_strides_over_every_value(device, threads):
     """Each thread of ``find_nonfinite_kernel`` walks its share of every input; whatever the launch

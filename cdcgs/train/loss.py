@@ -13,7 +13,7 @@ import kornia
 import torch
 import warp as wp
 
-from .._interop import warp_scope, wp_arg
+from .._interop import launch, warp_scope, wp_arg
 from ..kernels.loss import (
     ROW_GATHERS,
     ROW_MOMENTS,
@@ -81,10 +81,10 @@ class _FusedLoss(torch.autograd.Function):
         image_arg, target_arg = wp_arg(image, wp.vec3), wp_arg(target, target_type)
         with warp_scope(image.device):
             if ssim_weight:
-                wp.launch(
+                launch(
                     rows_kernel, height * width, inputs=[image_arg, target_arg], outputs=[wp_arg(row_moments, wp.vec3)]
                 )
-            wp.launch(
+            launch(
                 forward_kernel,
                 ssim_l1_launch_size(height, width),
                 inputs=[image_arg, target_arg, float(ssim_weight), inv_count, wp_arg(row_moments, wp.vec3)],
@@ -109,13 +109,13 @@ class _FusedLoss(torch.autograd.Function):
         grad_loss = grad_loss.reshape(1).float().contiguous()  # read on the device: no host synchronisation
         with warp_scope(image.device):
             if ctx.ssim_weight:
-                wp.launch(
+                launch(
                     ssim_l1_backward_rows_kernel,
                     height * width,
                     inputs=[wp_arg(m, wp.vec3) for m in maps],
                     outputs=[wp_arg(row_gathers, wp.vec3)],
                 )
-            wp.launch(
+            launch(
                 backward_kernel,
                 height * width,
                 inputs=[
