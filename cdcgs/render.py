@@ -17,6 +17,7 @@ import warp as wp
 
 from ._interop import launch as _launch
 from ._interop import torch_allocators as _torch_allocators
+from ._interop import torch_tensor as _torch
 from ._interop import warp_scope as _warp_scope
 from ._interop import wp_arg as _arg
 from ._interop import wp_array as _wp
@@ -182,7 +183,7 @@ def _count_reader(nonfinite: torch.Tensor, names):
     ``names[i]``) travel with it, so that validation costs no extra synchronisation."""
 
     def read_count(offsets: wp.array) -> int:
-        values = torch.cat([nonfinite, wp.to_torch(offsets)[-1:]]).tolist()
+        values = torch.cat([nonfinite, _torch(offsets)[-1:]]).tolist()
         for name, bad in zip(names, values[:-1]):
             if bad:
                 raise NonFiniteError(name)
@@ -699,10 +700,10 @@ def _info(width, height, projection, bins, colors, last, transmittance, depth, a
         opacities=opacities,
         colors=colors,
         radii=radii,
-        tile_counts=wp.to_torch(bins.tile_counts),
+        tile_counts=_torch(bins.tile_counts),
         num_intersections=bins.num_intersections,
-        tile_ranges=wp.to_torch(bins.tile_ranges),
-        sorted_gauss_ids=wp.to_torch(bins.sorted_gauss_ids),
+        tile_ranges=_torch(bins.tile_ranges),
+        sorted_gauss_ids=_torch(bins.sorted_gauss_ids),
         last_contributor=last,
         transmittance=transmittance,
         depth=depth,

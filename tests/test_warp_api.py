@@ -325,6 +325,47 @@ def test_warp_still_pins_tensors_where_unpin_descriptor_looks():
         unpin_descriptor(Foreign())
 
 
+def test_warp_array_views_keep_their_tensor_and_hand_it_back(device):
+    """``_interop.wp_array`` views a tensor's memory as Warp sees it (``wp.from_torch``'s shape and
+    values), keeps the tensor alive as long as the view, and ``torch_tensor`` hands back that very
+    tensor; what it cannot view (strides, a wrong inner size or dtype) it refuses."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from cdcgs._interop import torch_tensor, wp_array
+
+    for tensor, dtype in [
+        (torch.arange(12, dtype=torch.float32, device=device).view(4, 3), wp.vec3),
+        (torch.arange(8, dtype=torch.int32, device=device).view(4, 2), wp.vec2i),
+        (torch.arange(6, dtype=torch.float32, device=device).view(2, 3), wp.float32),
+        (torch.zeros(0, dtype=torch.int32, device=device), wp.int32),
+    ]:
+        view, reference = wp_array(tensor, dtype), wp.from_torch(tensor, dtype=dtype)
+        assert view.shape == reference.shape and view.dtype == reference.dtype and view.ptr == reference.ptr
+        np.testing.assert_array_equal(view.numpy(), reference.numpy())
+        assert torch_tensor(view) is tensor
+    sliced = wp_array(torch.arange(5, dtype=torch.int32, device=device), wp.int32)[:3]
+    assert torch_tensor(sliced).tolist() == [0, 1, 2]  # another Warp array: wp.to_torch's view
+    tensor = torch.zeros(10, 3, device=device)
+    alive = weakref.ref(tensor)
+    view = wp_array(tensor, wp.vec3)
+    del tensor
+    gc.collect()
+    assert alive() is not None, "the view must keep its tensor alive"
+    del view
+    gc.collect()
+    assert alive() is None
+    for tensor, dtype in [
+        (torch.zeros(4, 6, device=device)[:, :3], wp.vec3),
+        (torch.zeros(4, 2, device=device), wp.vec3),
+        (torch.zeros(4, 3, dtype=torch.float64, device=device), wp.vec3),
+    ]:
+        with pytest.raises(ValueError, match="views a contiguous"):
+            wp_array(tensor, dtype)
+
+
 def test_recorded_launches_run_each_call_with_its_own_arguments(device):
     """``_interop.launch`` records a kernel's first launch and replays the record: every later call
     runs with its own launch size, arrays and numbers (a replay that kept any of an earlier call's
