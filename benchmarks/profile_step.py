@@ -159,6 +159,7 @@ def instrumented(trainer: Trainer, clock: PartClock):
     def count_reader(*args, **kwargs):
         return clock.wrap("intersection count (sync)", real_reader(*args, **kwargs))
 
+    own = [(owner, name, getattr(owner, "__dict__", {}).get(name)) for owner, name, _ in methods]  # instance attributes
     for owner, name, label in methods:  # object.__setattr__: strategies may be frozen dataclasses
         object.__setattr__(owner, name, clock.wrap(label, getattr(owner, name)))
     for name, fn in loss_functions.items():
@@ -171,8 +172,11 @@ def instrumented(trainer: Trainer, clock: PartClock):
         torch.Tensor.backward, cdcgs.render._count_reader = real_backward, real_reader
         for name, fn in loss_functions.items():
             setattr(trainer_module, name, fn)
-        for owner, name, _ in methods:  # the class's method shows through again
-            object.__delattr__(owner, name)
+        for owner, name, before in own:  # the instance's own attribute back, or the class's method
+            if before is None:
+                object.__delattr__(owner, name)
+            else:
+                object.__setattr__(owner, name, before)
 
 
 def measure(args, count: int) -> dict:
