@@ -11,18 +11,24 @@ jitter of their own scale). The iteration counter is set to ``--at`` (20000: aft
 the steady state; 5001: during it, with the gradient statistics but no densification step inside
 the window). After ``--warmup`` steps, ``--steps`` steps are timed by the wall clock (a device
 synchronisation at both ends only: the step as the training runs it), then the same number under
-torch.profiler (CUPTI sees Warp's kernels as well as torch's), with each part of
-``Trainer.train_step`` wrapped in a labelled range.
+torch.profiler (CUPTI sees Warp's kernels as well as torch's). Each part of ``Trainer.train_step``
+is wrapped: a ``time.perf_counter`` clock during the wall-clock window (no synchronisation: the host
+time of the part, less the parts inside it) and a labelled range under the profiler (the GPU time of
+the kernels it launched). The render's read of its intersection count, where the host waits for the
+device, is a part of its own, so that "render forward" is the host's work alone.
 
 Printed and written to ``--out``: ms per step (wall), the share of it the GPU is busy (the union of
 kernel intervals over the profiled window), kernels per step (Warp's and torch's), host
 synchronisations and device-to-host copies per step, GPU time per stage (by kernel name) and, per
-part of the step, host time and the GPU time of the kernels it launched.
+part of the step, host time and the GPU time of the kernels it launched; "rest of the step" is
+the wall time less the parts' host time: the trainer's own code, and where the GPU sets the pace,
+the wait for it at the window's end.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -37,6 +43,7 @@ sys.path.insert(0, HERE)
 from run import STAGES, stage_of
 
 import cdcgs
+import cdcgs.render
 from cdcgs.io import read_ply
 from cdcgs.train import trainer as trainer_module
 from cdcgs.train.config import DataConfig, TrainConfig
@@ -48,6 +55,7 @@ from cdcgs.train.trainer import Trainer
 PARTS = [
     "view and learning rate",
     "render forward",
+    "intersection count (sync)",
     "loss forward",
     "strategy before backward",
     "backward",
@@ -60,12 +68,33 @@ PARTS = [
 SYNC_CALLS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cuStreamSynchronize")
 
 
-def labelled(label, fn):
-    def wrapped(*args, **kwargs):
-        with torch.profiler.record_function(label):
-            return fn(*args, **kwargs)
+class PartClock:
+    """Host seconds per part of the step: ``time.perf_counter`` around each call of a wrapped
+    function, less the time of the wrapped calls inside it (the count read inside the render), with
+    no device synchronisation. ``profiling``: also open a labelled range for torch.profiler (off in
+    the wall-clock window, where the range itself would cost host time)."""
 
-    return wrapped
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self.profiling = False
+        self._inner: list[float] = []  # per open call: the seconds of the wrapped calls inside it
+
+    def wrap(self, label: str, fn):
+        def wrapped(*args, **kwargs):
+            self._inner.append(0.0)
+            start = time.perf_counter()
+            try:
+                if self.profiling:
+                    with torch.profiler.record_function(label):
+                        return fn(*args, **kwargs)
+                return fn(*args, **kwargs)
+            finally:
+                elapsed = time.perf_counter() - start
+                self.seconds[label] = self.seconds.get(label, 0.0) + elapsed - self._inner.pop()
+                if self._inner:
+                    self._inner[-1] += elapsed
+
+        return wrapped
 
 
 def resampled(model: GaussianModel, count: int, generator: torch.Generator) -> GaussianModel:
@@ -109,23 +138,50 @@ def prepared(args, count: int, out: str) -> Trainer:
     return trainer
 
 
-def instrument(trainer: Trainer) -> None:
-    """Wrap each part of ``train_step`` in a labelled range (the trainer's own objects only)."""
-    trainer._next_view = labelled("view and learning rate", trainer._next_view)
-    trainer._render = labelled("render forward", trainer._render)
+@contextlib.contextmanager
+def instrumented(trainer: Trainer, clock: PartClock):
+    """Wrap each part of ``train_step`` in ``clock`` for the duration: methods of the trainer's own
+    objects, the loss functions it calls, ``torch.Tensor.backward`` and the render's count reader."""
     strategy, optimizer, guard = trainer.strategy, trainer.optimizer, trainer.guard
-    for name, label in (
-        ("before_backward", "strategy before backward"),
-        ("observe", "strategy observe"),
-        ("after_step", "strategy after step"),
-    ):
-        object.__setattr__(strategy, name, labelled(label, getattr(strategy, name)))
-    optimizer.step = labelled("optimizer step", optimizer.step)
-    optimizer.zero_grad = labelled("zero grad", optimizer.zero_grad)
-    guard.record = labelled("guard", guard.record)
+    methods = [
+        (trainer, "_next_view", "view and learning rate"),
+        (trainer, "_render", "render forward"),
+        (strategy, "before_backward", "strategy before backward"),
+        (strategy, "observe", "strategy observe"),
+        (strategy, "after_step", "strategy after step"),
+        (optimizer, "step", "optimizer step"),
+        (optimizer, "zero_grad", "zero grad"),
+        (guard, "record", "guard"),
+    ]
+    loss_functions = {name: getattr(trainer_module, name) for name in ("fused_photometric_loss", "photometric_loss")}
+    real_backward, real_reader = torch.Tensor.backward, cdcgs.render._count_reader
+
+    def count_reader(*args, **kwargs):
+        return clock.wrap("intersection count (sync)", real_reader(*args, **kwargs))
+
+    own = [(owner, name, getattr(owner, "__dict__", {}).get(name)) for owner, name, _ in methods]  # instance attributes
+    for owner, name, label in methods:  # object.__setattr__: strategies may be frozen dataclasses
+        object.__setattr__(owner, name, clock.wrap(label, getattr(owner, name)))
+    for name, fn in loss_functions.items():
+        setattr(trainer_module, name, clock.wrap("loss forward", fn))
+    torch.Tensor.backward = clock.wrap("backward", real_backward)
+    cdcgs.render._count_reader = count_reader
+    try:
+        yield clock
+    finally:
+        torch.Tensor.backward, cdcgs.render._count_reader = real_backward, real_reader
+        for name, fn in loss_functions.items():
+            setattr(trainer_module, name, fn)
+        for owner, name, before in own:  # the instance's own attribute back, or the class's method
+            if before is None:
+                object.__delattr__(owner, name)
+            else:
+                object.__setattr__(owner, name, before)
 
 
 def measure(args, count: int) -> dict:
+    from torch.profiler import ProfilerActivity, profile
+
     with tempfile.TemporaryDirectory() as out:
         trainer = prepared(args, count, out)
         device = trainer.device
@@ -134,33 +190,23 @@ def measure(args, count: int) -> dict:
         for _ in range(args.warmup):
             trainer.train_step()
         trainer.step = at  # the window sits at --at, not after the warm-up
-        sync()
-        start = time.perf_counter()
-        for _ in range(args.steps):
-            trainer.train_step()
-        sync()
-        wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
-        trainer.step = at
-        instrument(trainer)
-        real_loss = {name: getattr(trainer_module, name) for name in ("fused_photometric_loss", "photometric_loss")}
-        real_backward = torch.Tensor.backward
-        for name, fn in real_loss.items():
-            setattr(trainer_module, name, labelled("loss forward", fn))
-        torch.Tensor.backward = labelled("backward", real_backward)
-        try:
-            from torch.profiler import ProfilerActivity, profile
-
+        with instrumented(trainer, PartClock()) as clock:
+            sync()
+            start = time.perf_counter()
+            for _ in range(args.steps):
+                trainer.train_step()
+            sync()
+            wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
+            host_ms = {part: seconds * 1e3 / args.steps for part, seconds in clock.seconds.items()}
+            trainer.step = at
+            clock.profiling = True
             activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
             with profile(activities=activities) as prof:
                 for _ in range(args.steps):
                     trainer.train_step()
                 sync()
-        finally:
-            torch.Tensor.backward = real_backward
-            for name, fn in real_loss.items():
-                setattr(trainer_module, name, fn)
         _, _, info = trainer._render(0)
-        row = summarise(prof, args.steps, wall_ms, trainer.model.num, info.num_intersections)
+        row = summarise(prof, args.steps, wall_ms, host_ms, trainer.model.num, info.num_intersections)
         if args.complexity_views:
             row["complexity_pass"] = complexity_pass(trainer, args.complexity_views)
         return row
@@ -205,7 +251,7 @@ def _annotation(event) -> bool:
     return bool(getattr(event, "is_user_annotation", False)) or event.name in PARTS or "#" in event.name
 
 
-def summarise(prof, steps: int, wall_ms: float, gaussians: int, intersections: int) -> dict:
+def summarise(prof, steps: int, wall_ms: float, host_ms: dict, gaussians: int, intersections: int) -> dict:
     from torch.autograd import DeviceType
 
     events = prof.events()
@@ -237,13 +283,14 @@ def summarise(prof, steps: int, wall_ms: float, gaussians: int, intersections: i
                 current_end = max(current_end, e)
         busy += current_end - current_start
         span = intervals[-1][1] - intervals[0][0]
-    parts = {}
+    # Host time from the wall-clock window's clock (the profiler's CPU time of a labelled range
+    # held only what torch's own ops recorded, 0 for most parts on a GPU); GPU time from the profile.
+    parts = {part: {"host_ms": ms, "gpu_ms": 0.0} for part, ms in host_ms.items()}
     for row in prof.key_averages():
-        if row.key in PARTS:
-            parts[row.key] = {
-                "host_ms": row.cpu_time_total / 1e3 / steps,
-                "gpu_ms": getattr(row, "device_time_total", getattr(row, "cuda_time_total", 0.0)) / 1e3 / steps,
-            }
+        if row.key in parts:
+            gpu_us = getattr(row, "device_time_total", getattr(row, "cuda_time_total", 0.0))
+            parts[row.key]["gpu_ms"] = gpu_us / 1e3 / steps
+    parts["rest of the step"] = {"host_ms": max(wall_ms - sum(host_ms.values()), 0.0), "gpu_ms": 0.0}
     cpu_names = [e.name for e in events if e.device_type == DeviceType.CPU]
     warp = sum(1 for e in kernels if "_cuda_kernel_" in e.name)
     return {
@@ -295,7 +342,7 @@ def print_report(rows: list[dict], machine: str) -> None:
     if all("complexity_pass" in r for r in rows):
         line("Γ pass: ms per view (wall)", [f"{r['complexity_pass']['wall_ms_per_view']:.2f}" for r in rows])
         line("Γ pass: kernel ms per view", [f"{r['complexity_pass']['kernel_ms_per_view']:.2f}" for r in rows])
-    for part in PARTS:
+    for part in [*PARTS, "rest of the step"]:
         line(
             f"host / GPU: {part}",
             [
@@ -328,8 +375,6 @@ def main(argv=None) -> int:
         parser.error(f"--data {args.data!r} is not a folder")
     if args.ply and not os.path.isfile(args.ply):
         parser.error(f"--ply {args.ply!r} is not a file")
-    import cdcgs.render
-
     exact = cdcgs.render.bin_gaussians
 
     def rectangles(*a, conics=None, opacities=None, **k):

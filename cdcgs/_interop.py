@@ -1,11 +1,13 @@
 """Sharing torch tensors with Warp: zero-copy arrays, the right device and stream (private to cdcgs).
 
 Warp's runtime is initialised on first use (:func:`ensure_warp`, called by every function here that
-needs it), not when cdcgs is imported. What is kept between launches (launch descriptors, Warp
-streams wrapping torch's) belongs to one :class:`TorchWarpBridge`, ``BRIDGE``.
+needs it), not when cdcgs is imported. What is kept between launches (launch descriptors, recorded
+launches, Warp streams wrapping torch's) belongs to one :class:`TorchWarpBridge`, ``BRIDGE``.
 """
 
 import contextlib
+import ctypes
+import functools
 import threading
 
 import torch
@@ -15,14 +17,16 @@ __all__ = [
     "BRIDGE",
     "TorchWarpBridge",
     "ensure_warp",
+    "launch",
     "torch_allocators",
+    "torch_tensor",
     "unpin_descriptor",
     "warp_scope",
     "wp_arg",
     "wp_array",
 ]
 
-_TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32}
+_TORCH_DTYPES = {wp.int32: torch.int32, wp.int64: torch.int64, wp.float32: torch.float32, wp.uint8: torch.uint8}
 _VECTOR_TYPES = {
     wp.vec3: (torch.float32, 3),
     wp.vec2: (torch.float32, 2),
@@ -41,9 +45,35 @@ def ensure_warp() -> None:
 
 
 def wp_array(tensor: torch.Tensor, dtype) -> wp.array:
-    """A Warp view of a contiguous tensor's memory (no copy)."""
+    """A Warp view of a contiguous tensor's memory (no copy), which keeps the tensor alive and
+    hands it back (:func:`torch_tensor`).
+
+    Built with ``wp.array(ptr=...)``: ``wp.from_torch`` took twice as long (5 us on a 2-core
+    CPU), handling strides, gradients and storage offsets that these views do not have.
+    """
+    base, length = _VECTOR_TYPES.get(dtype, (_TORCH_DTYPES.get(dtype), 0))
+    shape = tuple(tensor.shape[:-1]) if length else tuple(tensor.shape)
+    if tensor.dtype != base or (length and tensor.shape[-1:] != (length,)) or not tensor.is_contiguous():
+        inner = f" [..., {length}]" if length else ""
+        raise ValueError(
+            f"{dtype.__name__} views a contiguous {base}{inner} tensor, got {tensor.dtype} {list(tensor.shape)}"
+        )
+    array = wp.array(ptr=tensor.data_ptr(), dtype=dtype, shape=shape, device=_warp_device(tensor.device))
+    array._cdcgs_tensor = tensor  # keeps the memory alive as long as the view
+    return array
+
+
+def torch_tensor(array: wp.array) -> torch.Tensor:
+    """The tensor of a :func:`wp_array` view; of any other Warp array, ``wp.to_torch``'s view."""
+    tensor = getattr(array, "_cdcgs_tensor", None)
+    return wp.to_torch(array, requires_grad=False) if tensor is None else tensor
+
+
+@functools.cache
+def _warp_device(device: torch.device):
+    """Warp's device of a torch device (kept: ``wp.device_from_torch`` parses its name)."""
     ensure_warp()
-    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+    return wp.device_from_torch(device)
 
 
 def unpin_descriptor(descriptor) -> None:
@@ -70,6 +100,9 @@ class TorchWarpBridge:
       caching allocator hands the same blocks back every iteration, and a render passes ~70 arrays
       (building each anew cost more host time than some kernels). At most ``max_descriptors``;
       the cache is emptied when full.
+    - Recorded launches (:meth:`launch`), one per kernel, device and launch kind, replayed with
+      each call's arguments: ``wp.launch`` checks, converts and packs every argument and resolves
+      the kernel's module on every call, the host time of a small kernel.
     - Warp streams wrapping torch's CUDA streams, one per (device index, stream handle).
     - :meth:`scope`: Warp's default device and each device's current stream are process-wide, so
       two threads (a training and its viewer) entering and leaving scopes in an interleaved order
@@ -83,6 +116,7 @@ class TorchWarpBridge:
     def __init__(self, max_descriptors: int = 1024):
         self.max_descriptors = max_descriptors
         self._descriptors: dict = {}
+        self._launches: dict = {}
         self._streams: dict = {}
         self._lock = threading.RLock()
         self._active = threading.local()
@@ -103,6 +137,64 @@ class TorchWarpBridge:
             unpin_descriptor(descriptor)
             self._descriptors[key] = descriptor
         return descriptor
+
+    def launch(
+        self,
+        kernel,
+        dim,
+        inputs=(),
+        outputs=(),
+        adj_inputs=(),
+        adj_outputs=(),
+        device=None,
+        adjoint: bool = False,
+        block_dim: int | None = None,
+    ) -> None:
+        """``wp.launch`` with the same arguments, for a kernel launched again and again.
+
+        The first launch of ``kernel`` on a device (forward or adjoint, at a block size) is
+        recorded (``wp.launch(..., record_cmd=True)``); later ones replay that record, setting the
+        launch size and the arguments that are not the very objects of the last launch (cached
+        descriptors, the same camera, None) without Warp's checks and conversions. Arguments as
+        ``wp.launch`` takes them; Warp arrays are held as descriptors, so that no record keeps a
+        buffer alive. Records are set and launched under the bridge's lock.
+        """
+        values = [_descriptor_of(value) for value in (*inputs, *outputs, *adj_inputs, *adj_outputs)]
+        with self._lock:
+            device = wp.get_device(device)
+            key = (kernel, device.alias, adjoint, block_dim, len(inputs) + len(outputs))
+            replay = self._launches.get(key)
+            if replay is None:
+                if kernel.is_generic:  # overloads resolved from the arguments: no one record
+                    wp.launch(
+                        kernel,
+                        dim,
+                        inputs,
+                        outputs,
+                        adj_inputs,
+                        adj_outputs,
+                        device,
+                        adjoint=adjoint,
+                        block_dim=block_dim,
+                    )
+                    return
+                count = len(inputs) + len(outputs)
+                record = wp.launch(
+                    kernel,
+                    dim,
+                    values[:count],
+                    adj_inputs=values[count:],
+                    device=device,
+                    adjoint=adjoint,
+                    block_dim=block_dim,
+                    record_cmd=True,
+                )
+                if record is None:  # an empty launch: nothing to run, nothing recorded
+                    return
+                replay = self._launches[key] = _Replay(record, dim, values, count)
+            else:
+                replay.update(dim, values)
+            replay.record.launch()
 
     @contextlib.contextmanager
     def scope(self, device: torch.device):
@@ -140,10 +232,43 @@ class TorchWarpBridge:
                 yield wp.get_device("cpu")
 
 
+def _descriptor_of(value):
+    """A Warp array as its descriptor (which holds no reference to its memory); anything else as
+    it is."""
+    return value.__ctype__() if isinstance(value, wp.array) else value
+
+
+class _Replay:
+    """A recorded launch and the argument objects it was last set to."""
+
+    __slots__ = ("count", "dim", "record", "values")
+
+    def __init__(self, record, dim, values: list, count: int):
+        self.record, self.dim, self.values, self.count = record, dim, values, count
+
+    def update(self, dim, values: list) -> None:
+        record = self.record
+        if dim != self.dim:
+            record.set_dim(dim)
+            self.dim = dim
+        last, count = self.values, self.count
+        for i, value in enumerate(values):
+            if value is last[i]:
+                continue
+            adjoint = i >= count
+            index = i - count if adjoint else i
+            if isinstance(value, (ctypes.Structure, int, float)):  # descriptors, numbers: set as they are
+                record.set_param_at_index_from_ctype(index, value, adjoint)
+            else:  # None, Warp structs and vectors: packed by Warp
+                record.set_param_at_index(index, value, adjoint)
+            last[i] = value
+
+
 BRIDGE = TorchWarpBridge()
 # The bridge's methods under the names the torch face uses.
 wp_arg = BRIDGE.descriptor
 warp_scope = BRIDGE.scope
+launch = BRIDGE.launch
 
 
 def torch_allocators(device: torch.device):

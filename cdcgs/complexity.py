@@ -20,7 +20,7 @@ import ptwt
 import torch
 import warp as wp
 
-from ._interop import warp_scope, wp_array
+from ._interop import launch, warp_scope, wp_arg
 from .kernels._constants import BLOCK_SIZE
 from .kernels.blend import MAX_EXACT, MAX_RACY_KEEP, MAX_RACY_RANK, W_MAX_ALPHA, W_MAX_WEIGHT, complexity_kernel
 
@@ -129,27 +129,34 @@ def gaussian_complexity(
     racy = racy_seed is not None
     keys = torch.full((info.sorted_gauss_ids.numel() if racy else 1,), -1, dtype=torch.int32, device=device)
     tiles_y, tiles_x = info.tiles_y, info.tiles_x
+    # Held here for the launches: a launch argument (a cached descriptor) does not keep its tensor alive.
+    tensors = [
+        info.tile_ranges,
+        info.sorted_gauss_ids,
+        info.means2d.detach().contiguous(),
+        info.conics.detach().contiguous(),
+        opacities.detach().contiguous(),
+        hf_map.to(device).contiguous(),
+    ]
     with warp_scope(device):
         inputs = [
-            wp_array(info.tile_ranges, wp.int32),
-            wp_array(info.sorted_gauss_ids, wp.int32),
-            wp_array(info.means2d.detach().contiguous(), wp.vec2),
-            wp_array(info.conics.detach().contiguous(), wp.vec3),
-            wp_array(opacities.detach().contiguous(), wp.float32),
-            wp_array(hf_map.to(device).contiguous(), wp.uint8),
+            *(
+                wp_arg(t, dtype)
+                for t, dtype in zip(tensors, (wp.int32, wp.int32, wp.vec2, wp.vec3, wp.float32, wp.uint8))
+            ),
             info.width,
             info.height,
             tiles_x,
             W_MAX_ALPHA if w_max == "alpha" else W_MAX_WEIGHT,
         ]
-        outputs = [wp_array(max_out, wp.float32), wp_array(sum_out, wp.float32), wp_array(count_out, wp.int32)]
+        outputs = [wp_arg(max_out, wp.float32), wp_arg(sum_out, wp.float32), wp_arg(count_out, wp.int32)]
         seed = 0 if racy_seed is None else int(racy_seed) % (2**23)
         passes = (MAX_RACY_RANK, MAX_RACY_KEEP) if racy else (MAX_EXACT,)
         for max_rule in passes:
-            wp.launch(
+            launch(
                 complexity_kernel,
                 tiles_x * tiles_y * BLOCK_SIZE,
-                inputs=[*inputs, max_rule, seed, int(sums), wp_array(keys, wp.int32)],
+                inputs=[*inputs, max_rule, seed, int(sums), wp_arg(keys, wp.int32)],
                 outputs=outputs,
                 block_dim=BLOCK_SIZE,
             )

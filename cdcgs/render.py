@@ -15,7 +15,9 @@ import numpy as np
 import torch
 import warp as wp
 
+from ._interop import launch as _launch
 from ._interop import torch_allocators as _torch_allocators
+from ._interop import torch_tensor as _torch
 from ._interop import warp_scope as _warp_scope
 from ._interop import wp_arg as _arg
 from ._interop import wp_array as _wp
@@ -147,7 +149,7 @@ def _project(means, quats, scales, opacities, camera: Camera, antialiased: bool,
     out_opacities = means.new_empty(n)
     radii = torch.empty(n, 2, dtype=torch.int32, device=means.device)
     with _warp_scope(means.device):
-        wp.launch(
+        _launch(
             project_gaussians_kernel,
             n,
             inputs=_project_inputs(means, quats, scales, opacities, camera, antialiased),
@@ -171,6 +173,7 @@ def _bin(means2d, radii, depths, conics, opacities, width: int, height: int, rea
         read_count=read_count,
         conics=_wp(conics.detach(), wp.vec3),
         opacities=_wp(opacities.detach(), wp.float32),
+        launch=_launch,
     )
 
 
@@ -180,7 +183,7 @@ def _count_reader(nonfinite: torch.Tensor, names):
     ``names[i]``) travel with it, so that validation costs no extra synchronisation."""
 
     def read_count(offsets: wp.array) -> int:
-        values = torch.cat([nonfinite, wp.to_torch(offsets)[-1:]]).tolist()
+        values = torch.cat([nonfinite, _torch(offsets)[-1:]]).tolist()
         for name, bad in zip(names, values[:-1]):
             if bad:
                 raise NonFiniteError(name)
@@ -219,7 +222,7 @@ class _Project(torch.autograd.Function):
             )
         ]
         with _warp_scope(means.device):
-            wp.launch(
+            _launch(
                 project_gaussians_kernel,
                 means.shape[0],
                 inputs=_project_inputs(means, quats, scales, opacities, ctx.camera, ctx.antialiased),
@@ -261,7 +264,7 @@ class _ShColor(torch.autograd.Function):
     def forward(ctx, means, sh, sh_rest, sh_degree: int, camera_center, radii, nonfinite):
         colors = means.new_empty(means.shape[0], 3)
         with _warp_scope(means.device):
-            wp.launch(
+            _launch(
                 sh_to_color_kernel,
                 means.shape[0],
                 inputs=[
@@ -288,7 +291,7 @@ class _ShColor(torch.autograd.Function):
         grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
         grouped = means.device.type == "cuda"  # one thread per SH coefficient (half-warp shuffles)
         with _warp_scope(means.device):
-            wp.launch(
+            _launch(
                 sh_to_color_grouped_backward_kernel if grouped else sh_to_color_backward_kernel,
                 means.shape[0] * (MAX_SH_COEFFICIENTS if grouped else 1),
                 inputs=[
@@ -321,7 +324,7 @@ class _Blend(torch.autograd.Function):
         depth_sum = means2d.new_empty(height, width)
         last = torch.empty(height, width, dtype=torch.int32, device=device)
         with _warp_scope(device):
-            wp.launch(
+            _launch(
                 blend_forward_kernel,
                 bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
                 inputs=[
@@ -376,7 +379,7 @@ class _Blend(torch.autograd.Function):
             _arg(absgrad, wp.vec2) if sums else None,
         ]
         with _warp_scope(means2d.device):
-            wp.launch(
+            _launch(
                 blend_backward_kernel if sums else blend_backward_lean_kernel,
                 bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
                 inputs=[
@@ -655,7 +658,7 @@ def rasterize(
         if any(t.numel() for t in own_check):
             flat = [means[:0].view(-1)] * 4 + [t.view(-1) for t in own_check]
             threads = min(max(t.numel() for t in flat), _CHECK_THREADS)
-            wp.launch(
+            _launch(
                 find_nonfinite_kernel,
                 threads,
                 inputs=[*(_arg(t, wp.float32) for t in flat), threads],
@@ -697,10 +700,10 @@ def _info(width, height, projection, bins, colors, last, transmittance, depth, a
         opacities=opacities,
         colors=colors,
         radii=radii,
-        tile_counts=wp.to_torch(bins.tile_counts),
+        tile_counts=_torch(bins.tile_counts),
         num_intersections=bins.num_intersections,
-        tile_ranges=wp.to_torch(bins.tile_ranges),
-        sorted_gauss_ids=wp.to_torch(bins.sorted_gauss_ids),
+        tile_ranges=_torch(bins.tile_ranges),
+        sorted_gauss_ids=_torch(bins.sorted_gauss_ids),
         last_contributor=last,
         transmittance=transmittance,
         depth=depth,

@@ -325,6 +325,97 @@ def test_warp_still_pins_tensors_where_unpin_descriptor_looks():
         unpin_descriptor(Foreign())
 
 
+def test_warp_array_views_keep_their_tensor_and_hand_it_back(device):
+    """``_interop.wp_array`` views a tensor's memory as Warp sees it (``wp.from_torch``'s shape and
+    values), keeps the tensor alive as long as the view, and ``torch_tensor`` hands back that very
+    tensor; what it cannot view (strides, a wrong inner size or dtype) it refuses."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from cdcgs._interop import torch_tensor, wp_array
+
+    for tensor, dtype in [
+        (torch.arange(12, dtype=torch.float32, device=device).view(4, 3), wp.vec3),
+        (torch.arange(8, dtype=torch.int32, device=device).view(4, 2), wp.vec2i),
+        (torch.arange(6, dtype=torch.float32, device=device).view(2, 3), wp.float32),
+        (torch.zeros(0, dtype=torch.int32, device=device), wp.int32),
+    ]:
+        view, reference = wp_array(tensor, dtype), wp.from_torch(tensor, dtype=dtype)
+        assert view.shape == reference.shape and view.dtype == reference.dtype and view.ptr == reference.ptr
+        np.testing.assert_array_equal(view.numpy(), reference.numpy())
+        assert torch_tensor(view) is tensor
+    sliced = wp_array(torch.arange(5, dtype=torch.int32, device=device), wp.int32)[:3]
+    assert torch_tensor(sliced).tolist() == [0, 1, 2]  # another Warp array: wp.to_torch's view
+    tensor = torch.zeros(10, 3, device=device)
+    alive = weakref.ref(tensor)
+    view = wp_array(tensor, wp.vec3)
+    del tensor
+    gc.collect()
+    assert alive() is not None, "the view must keep its tensor alive"
+    del view
+    gc.collect()
+    assert alive() is None
+    for tensor, dtype in [
+        (torch.zeros(4, 6, device=device)[:, :3], wp.vec3),
+        (torch.zeros(4, 2, device=device), wp.vec3),
+        (torch.zeros(4, 3, dtype=torch.float64, device=device), wp.vec3),
+    ]:
+        with pytest.raises(ValueError, match="views a contiguous"):
+            wp_array(tensor, dtype)
+
+
+def test_recorded_launches_run_each_call_with_its_own_arguments(device):
+    """``_interop.launch`` records a kernel's first launch and replays the record: every later call
+    runs with its own launch size, arrays and numbers (a replay that kept any of an earlier call's
+    would flag the wrong input, or miss one), as ``wp.launch`` runs it, and no record keeps an
+    array's memory alive."""
+    import gc
+    import weakref
+
+    import warp as wp
+
+    from cdcgs._interop import launch, warp_scope, wp_arg, wp_array
+    from cdcgs.kernels._checks import find_nonfinite_kernel
+
+    rng = np.random.default_rng(7)
+
+    def check(threads, bad, in_place=None):
+        """Flags of six inputs where those in ``bad`` hold one NaN, by ``launch`` and by ``wp.launch``."""
+        values = [torch.tensor(rng.normal(size=int(rng.integers(5, 40))), dtype=torch.float32) for _ in range(6)]
+        values = in_place or [v.to(device) for v in values]
+        for k, v in enumerate(values):
+            v.copy_(torch.randn(v.shape[0], device=device))
+            if k in bad:
+                v[-1] = float("nan")  # the last value: reached by the last thread's stride only
+        flags = [torch.zeros(6, dtype=torch.int32, device=device) for _ in range(2)]
+        with warp_scope(torch.device(device)):
+            # one input as a Warp array (held as its descriptor), the others as cached descriptors
+            arguments = [wp_array(values[0], wp.float32), *(wp_arg(v, wp.float32) for v in values[1:]), threads]
+            launch(find_nonfinite_kernel, threads, inputs=arguments, outputs=[wp_arg(flags[0], wp.int32)])
+            wp.launch(find_nonfinite_kernel, threads, inputs=arguments, outputs=[wp_arg(flags[1], wp.int32)])
+        assert flags[0].tolist() == flags[1].tolist() == [int(k in bad) for k in range(6)], (threads, bad)
+        return values
+
+    check(3, {2})  # recorded
+    check(1, {4})  # replayed: other arrays, launch size and thread count
+    kept = check(64, {0, 5})
+    check(64, {1}, in_place=kept)  # the same arrays again, their values changed
+    with warp_scope(torch.device(device)):  # an empty launch runs nothing and records nothing
+        launch(find_nonfinite_kernel, 0, inputs=[wp_arg(kept[0], wp.float32)] * 6 + [0], outputs=[None])
+    tensor = torch.zeros(10, device=device)
+    alive = weakref.ref(tensor)
+    with warp_scope(torch.device(device)):
+        flags = torch.zeros(6, dtype=torch.int32, device=device)
+        launch(
+            find_nonfinite_kernel, 2, inputs=[wp_array(tensor, wp.float32)] * 6 + [2], outputs=[wp_arg(flags, wp.int32)]
+        )
+    del tensor
+    gc.collect()
+    assert alive() is None, "a recorded launch kept its Warp array's tensor alive"
+
+
 @pytest.mark.parametrize("threads", [1, 3, 64])
 def test_nonfinite_check_strides_over_every_value(device, threads):
     """Each thread of ``find_nonfinite_kernel`` walks its share of every input; whatever the launch

@@ -267,6 +267,7 @@ def bin_gaussians(
     *,
     conics: wp.array | None = None,
     opacities: wp.array | None = None,
+    launch: Callable | None = None,
 ) -> TileBins:
     """Bin projected Gaussians into TILE_SIZE x TILE_SIZE tiles and sort each tile's list by depth.
 
@@ -281,6 +282,8 @@ def bin_gaussians(
             passes ones backed by torch's caching allocator); default ``wp.empty`` / ``wp.zeros``.
         read_count: optional ``(offsets) -> int`` reading the total intersection count, the last
             entry of ``offsets`` (an inclusive prefix sum of tile counts).
+        launch: optional stand-in for ``wp.launch`` with its arguments (the torch face passes one
+            that replays recorded launches); default ``wp.launch``.
 
     The one host synchronisation of a render happens here: the intersection count must be known
     on the host to size the sort buffers.
@@ -290,6 +293,7 @@ def bin_gaussians(
         raise ValueError("bin_gaussians: give both conics and opacities (exact footprints) or neither")
     exact = int(conics is not None)
     allocate = allocate or _warp_empty
+    launch = launch or wp.launch
     zeros = zeros or (lambda shape, dtype, dev: wp.zeros(shape, dtype=dtype, device=dev))
     n = means2d.shape[0]
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -303,7 +307,7 @@ def bin_gaussians(
     tile_rects = allocate((n,), wp.vec4i, device)
     depth_keys = allocate((2 * n,), wp.int32, device)
     depth_order = allocate((2 * n,), wp.int32, device)
-    wp.launch(
+    launch(
         count_tiles_kernel,
         n,
         inputs=[means2d, radii, depths.view(wp.int32), conics, opacities, exact, tiles_x, tiles_y],
@@ -312,7 +316,7 @@ def bin_gaussians(
     )
     wp.utils.radix_sort_pairs(depth_keys, depth_order, n, end_bit=31)
     ordered_counts = depth_keys[:n]  # the sorted depth keys are spent: their buffer takes the counts
-    wp.launch(gather_counts_kernel, n, inputs=[tile_counts, depth_order], outputs=[ordered_counts], device=device)
+    launch(gather_counts_kernel, n, inputs=[tile_counts, depth_order], outputs=[ordered_counts], device=device)
     ordered_offsets = allocate((n,), wp.int32, device)
     wp.utils.array_scan(ordered_counts, ordered_offsets, inclusive=True)
     if read_count is None:
@@ -324,7 +328,7 @@ def bin_gaussians(
     keys = allocate((max(2 * total, 2),), wp.int32, device)
     gauss_ids = allocate((max(2 * total, 2),), wp.int32, device)
     if total > 0:
-        wp.launch(
+        launch(
             emit_keys_kernel,
             total,
             inputs=[ordered_offsets, n, depth_order, tile_rects, means2d, conics, opacities, exact, tiles_x],
@@ -332,7 +336,7 @@ def bin_gaussians(
             device=device,
         )
         wp.utils.radix_sort_pairs(keys, gauss_ids, total, end_bit=max(int(num_tiles - 1).bit_length(), 1))
-        wp.launch(tile_ranges_kernel, total, inputs=[keys, total], outputs=[tile_ranges], device=device)
+        launch(tile_ranges_kernel, total, inputs=[keys, total], outputs=[tile_ranges], device=device)
     return TileBins(
         tiles_x=tiles_x,
         tiles_y=tiles_y,

@@ -15,7 +15,7 @@ import math
 import torch
 import warp as wp
 
-from .._interop import warp_scope, wp_array
+from .._interop import launch, warp_scope, wp_arg
 from ..kernels.adam import selective_adam_kernel
 
 __all__ = ["SelectiveAdam"]
@@ -63,18 +63,18 @@ class SelectiveAdam(torch.optim.Optimizer):
                 state["step"] = state["step"].cpu()
             state["step"] += 1
             t = float(state["step"])
-            grad = p.grad.contiguous()
+            grad = p.grad.contiguous()  # held here: a launch argument does not keep its tensor alive
             width = p.numel() // rows if rows else 1
             with warp_scope(p.device):
-                wp.launch(
+                launch(
                     selective_adam_kernel,
-                    dim=p.numel(),
+                    p.numel(),
                     inputs=[
-                        wp_array(p.view(-1), wp.float32),
-                        wp_array(grad.view(-1), wp.float32),
-                        wp_array(state["exp_avg"].view(-1), wp.float32),
-                        wp_array(state["exp_avg_sq"].view(-1), wp.float32),
-                        wp_array(mask.view(torch.uint8), wp.uint8),
+                        wp_arg(p.view(-1), wp.float32),
+                        wp_arg(grad.view(-1), wp.float32),
+                        wp_arg(state["exp_avg"].view(-1), wp.float32),
+                        wp_arg(state["exp_avg_sq"].view(-1), wp.float32),
+                        wp_arg(mask.view(torch.uint8), wp.uint8),
                         width,
                         float(group["lr"]),
                         float(beta1),
