@@ -161,7 +161,7 @@ def evaluate(
     if save_dir and rank == 0:
         os.makedirs(save_dir, exist_ok=True)
     for view in views:
-        image, _, _ = render(model, view, background, antialiased)
+        image = render(model, view, background, antialiased)[0]  # the render's buffers go at once
         gt = view.image.to(device).float() / 255.0
         with float32_convolutions():  # kornia's SSIM is a convolution too: full float32, no cuDNN workspace
             score = ssim(image, gt).item()
