@@ -59,10 +59,8 @@ def folder_name(run: str) -> str:
 
 def command(run: str, args, out: str, iters: int) -> list[str]:
     """The command line of one run."""
-    base, own = parse_run(run)
-    seed = own[own.index("--seed") + 1] if "--seed" in own else str(args.seed)
-    own = [a for i, a in enumerate(own) if a != "--seed" and (i == 0 or own[i - 1] != "--seed")]
-    common = ["--data", args.data, "--out", out, "--iters", str(iters), "--seed", seed]
+    base, own = parse_run(run)  # last on the command line: a run's own --seed wins over --seed
+    common = ["--data", args.data, "--out", out, "--iters", str(iters), "--seed", str(args.seed)]
     if args.images:
         common += ["--images", args.images]
     if base == "gsplat":
