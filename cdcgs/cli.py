@@ -726,5 +726,25 @@ def main(argv=None) -> int:
         return 2
 
 
+def exit_process(code) -> None:
+    """End the process with ``code`` (main's return value), as ``sys.exit`` does, except in a
+    process of a torchrun launch (``WORLD_SIZE`` above 1). There the interpreter's own shutdown
+    can meet gloo's worker thread still releasing a collective's tensors, which needs the GIL the
+    shutdown is taking down and aborts the process (seen once in CI, at the end of a finished
+    two-process run, after the barrier of ``Ranks.close``). By then everything is written, so such
+    a process flushes its streams and logs and ends without the shutdown."""
+    code = 0 if code is None else code
+    try:
+        several = int(os.environ.get("WORLD_SIZE") or 1) > 1
+    except ValueError:
+        several = False
+    if not several:
+        sys.exit(code)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code if isinstance(code, int) else 1)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_process(main())

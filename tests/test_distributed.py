@@ -184,6 +184,32 @@ def test_torchrun_launches_the_command_line(small_scene, tmp_path):
     assert (metrics["processes"], metrics["batch_size"], metrics["iterations"]) == (2, 2, 4)
 
 
+@pytest.mark.parametrize("world", ["1", "2"])
+def test_a_process_ends_with_its_status_and_its_output_flushed(tmp_path, world):
+    """cdcgs's exit: in a torchrun process (WORLD_SIZE above 1) without the interpreter's shutdown,
+    which could abort on gloo's worker thread, but with the status main returned and every line
+    written, also those still in a buffer or a logging handler."""
+    script = (
+        "import atexit, logging, sys\n"
+        "from cdcgs.cli import exit_process\n"
+        "atexit.register(lambda: sys.stderr.write('shut down'))\n"
+        "logging.basicConfig(filename=sys.argv[1], level=logging.INFO)\n"
+        "logging.info('logged')\n"
+        "sys.stdout.write('no newline, still in the buffer')\n"
+        "exit_process(3)\n"
+        "print('never')\n"
+    )
+    log = tmp_path / "log.txt"
+    environment = {**os.environ, "WORLD_SIZE": world}
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(log)], capture_output=True, text=True, timeout=120, env=environment
+    )
+    assert done.returncode == 3, done.stderr[-2000:]
+    assert done.stdout == "no newline, still in the buffer"
+    assert "logged" in log.read_text()
+    assert ("shut down" in done.stderr) == (world == "1"), "the interpreter's shutdown only in one process"
+
+
 # ------------------------------------------------------------------------- one process, batches
 
 
