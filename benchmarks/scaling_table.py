@@ -12,9 +12,9 @@ that needs more GPUs than the machine has is skipped, and said so.
 
 The table (steps, training time, images per second and its ratio to the strategy's first config,
 test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, the largest peak GPU memory of a process, the
-all-reduce's share of a step), with the machine, date and commit, is printed, written to
-``--out``/scaling.md and, with ``--docs``, put into that file between ``<!-- scaling-table:begin -->``
-and ``<!-- scaling-table:end -->``. Runs whose folder already holds a finished run are read, not
+all-reduce's share of a step and the wait for the slowest rank before it), with the machine, date
+and commit, is printed, written to ``--out``/scaling.md and, with ``--docs``, put into that file
+between ``<!-- scaling-table:begin -->`` and ``<!-- scaling-table:end -->``. Runs whose folder already holds a finished run are read, not
 trained again (``--retrain`` trains them anew). ``--device cpu`` runs the same on the CPU (gloo).
 """
 
@@ -108,15 +108,15 @@ def table(rows: dict[tuple[str, str], dict], machine: str, args) -> str:
         f"commit {commit()} (`python benchmarks/scaling_table.py`):",
         "",
         "| strategy | GPUs × batch | steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG | LPIPS-Alex "
-        "| Gaussians | peak GB / GPU | all-reduce |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| Gaussians | peak GB / GPU | all-reduce | wait |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     first: dict[str, float] = {}
     for (strategy, config), m in rows.items():
         processes, batch = parse_config(config)
         label = f"{processes} × {batch}"
         if "skipped" in m:
-            lines.append(f"| {strategy} | {label} | skipped: {m['skipped']} |" + " |" * 10)
+            lines.append(f"| {strategy} | {label} | skipped: {m['skipped']} |" + " |" * 11)
             continue
         test = m.get("test", {})
         rate = m["iterations"] / m["train_seconds"]
@@ -124,11 +124,12 @@ def table(rows: dict[tuple[str, str], dict], machine: str, args) -> str:
         peaks = [p for p in m.get("peak_gpu_memory_gb_per_process") or [m.get("peak_gpu_memory_gb")] if p is not None]
         comm = m.get("communication") or {}
         share = f"{comm['share'] * 100:.0f}% ({comm['all_reduce_ms_per_step']:.2f} ms)" if "share" in comm else "—"
+        wait = f"{comm['wait_share'] * 100:.0f}% ({comm['wait_ms_per_step']:.2f} ms)" if "wait_share" in comm else "—"
         lines.append(
             f"| {strategy} | {label} | {-(-m['iterations'] // batch):,} | {m['train_seconds']:.1f} s | {rate:.1f} "
             f"| {rate / first[strategy]:.2f}× | {_number(test.get('psnr'), 2)} | {_number(test.get('ssim'), 4)} "
             f"| {_number(test.get('lpips_vgg'), 4)} | {_number(test.get('lpips_alex'), 4)} | {m['num_gaussians']:,} "
-            f"| {_number(max(peaks), 2) if peaks else '—'} | {share} |"
+            f"| {_number(max(peaks), 2) if peaks else '—'} | {share} | {wait} |"
         )
     return "\n".join(lines) + "\n"
 

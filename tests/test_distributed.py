@@ -174,14 +174,20 @@ def test_a_batch_smaller_than_the_processes_is_refused(small_scene, tmp_path):
 def test_torchrun_launches_the_command_line(small_scene, tmp_path):
     out = tmp_path / "run"
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "cdcgs"]
-    command += ["train", "--data", str(small_scene), "--out", str(out), "--iters", "4", "--batch-size", "2"]
-    command += ["--device", "cpu", "--no-progress", "--test-every", "3", "--eval-every", "2"]
+    # 22 views at batch 2: steps 0 … 10, and step 10 is the one whose communication is timed
+    command += ["train", "--data", str(small_scene), "--out", str(out), "--iters", "22", "--batch-size", "2"]
+    command += ["--device", "cpu", "--no-progress", "--test-every", "3", "--eval-every", "20"]
     done = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     printed = done.stdout + done.stderr
-    assert printed.count("outputs in") == 1 and printed.count("[2] test PSNR") == 1, "only rank 0 prints"
+    assert printed.count("outputs in") == 1 and printed.count("[20] test PSNR") == 1, "only rank 0 prints"
     metrics = json.loads((out / "metrics.json").read_text())
-    assert (metrics["processes"], metrics["batch_size"], metrics["iterations"]) == (2, 2, 4)
+    assert (metrics["processes"], metrics["batch_size"], metrics["iterations"]) == (2, 2, 22)
+    comm = metrics["communication"]
+    assert (comm["timed_steps"], comm["backend"]) == (1, "gloo"), comm
+    assert 0 < comm["all_reduce_ms_per_step"] < comm["step_ms"] and comm["wait_ms_per_step"] >= 0, comm
+    assert comm["share"] == pytest.approx(comm["all_reduce_ms_per_step"] / comm["step_ms"])
+    assert comm["wait_share"] == pytest.approx(comm["wait_ms_per_step"] / comm["step_ms"])
 
 
 @pytest.mark.parametrize("world", ["1", "2"])

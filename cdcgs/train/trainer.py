@@ -152,8 +152,9 @@ class Trainer:
         # Reduced over the processes every step: (a signal is pending, a render met NaN) on any.
         self._flags = torch.zeros(2)
         self._nonfinite_at: int | None = None  # the iteration whose render met NaN, on this process
-        self._communication: list[tuple[float, float]] = []  # (all-reduce ms, step ms) of timed steps
+        self._communication: list[tuple[float, float, float]] = []  # (wait, all-reduce, step) ms of timed steps
         self._reduce_ms = 0.0
+        self._wait_ms = 0.0
         self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
 
     # ----------------------------------------------------------------------------- set-up
@@ -444,16 +445,19 @@ class Trainer:
 
     def _communication_summary(self) -> dict:
         """The all-reduce's share of a step, from the timed steps (one in
-        ``TIME_COMMUNICATION_EVERY``, each synchronised before and after its all-reduce)."""
+        ``TIME_COMMUNICATION_EVERY``, each synchronised around its all-reduce): ``wait_ms_per_step``
+        is how long this rank waited for the slowest one before it (the batch's imbalance),
+        ``all_reduce_ms_per_step`` the gradients' all-reduce after that wait."""
         if not self._communication:
             return {"timed_steps": 0}
-        reduce_ms = sum(r for r, _ in self._communication) / len(self._communication)
-        step_ms = sum(t for _, t in self._communication) / len(self._communication)
+        wait_ms, reduce_ms, step_ms = (sum(column) / len(self._communication) for column in zip(*self._communication))
         return {
             "timed_steps": len(self._communication),
             "all_reduce_ms_per_step": reduce_ms,
+            "wait_ms_per_step": wait_ms,
             "step_ms": step_ms,
             "share": reduce_ms / max(step_ms, 1e-9),
+            "wait_share": wait_ms / max(step_ms, 1e-9),
             "backend": self.ranks.backend,
         }
 
@@ -542,7 +546,8 @@ class Trainer:
         self.strategy.after_step(self._context(last), self.strategy_state)
         if timed:
             self._synchronize()
-            self._communication.append((self._reduce_ms, (time.perf_counter() - step_start) * 1e3))
+            step_ms = (time.perf_counter() - step_start) * 1e3
+            self._communication.append((self._wait_ms, self._reduce_ms, step_ms))
         merged = {}
         for _, log in self.step_events:
             merged.update(log)
@@ -616,7 +621,13 @@ class Trainer:
         if visible is not None:
             extras.append(visible.float())
         if timed:
+            # First wait for the slowest rank (a one-number all-reduce), so that the gradients'
+            # all-reduce is timed alone: the wait is the batch's imbalance, not communication.
             self._synchronize()
+            start = time.perf_counter()
+            self.ranks.all_reduce_(torch.zeros(1, device=self.device))
+            self._synchronize()
+            self._wait_ms = (time.perf_counter() - start) * 1e3
             start = time.perf_counter()
         reduced = self.ranks.reduce_gradients(params, count, extras)
         if visible is not None:
