@@ -10,7 +10,7 @@ import reference
 import torch
 from helpers import DEFAULT_DEVICE, context, hand_model, interrupt_at, moments, tiny_config
 
-from cdcgs.train.mcmc import MCMC, copy_weights, position_noise, relocation
+from cdcgs.train.mcmc import MCMC, copy_weights, draw_with_replacement, position_noise, relocation
 from cdcgs.train.strategies import make_strategy
 from cdcgs.train.trainer import Trainer
 
@@ -76,6 +76,29 @@ def test_position_noise_matches_a_float64_reference():
         expected[i] = covariance @ z[i] * gate * 5e5 * 1.6e-4 * 3.0
     torch.testing.assert_close(noise.double(), expected, rtol=1e-4, atol=1e-12)
     assert noise[5].abs().max() < 1e-20 < noise[0].abs().max()  # opaque Gaussians stay put
+
+
+def test_draws_with_replacement_invert_the_float64_cumulative_sum():
+    """Each draw is the first index whose float64 cumulative weight exceeds u * total (u the
+    generator's uniforms, numpy's searchsorted the reference); zero weights (at both ends and
+    inside) are never drawn, the frequencies follow the weights, and the same state draws the same."""
+    weights = torch.tensor([0.0, 1.0, 3.0, 0.0, 6.0, 0.0], device=DEFAULT_DEVICE)
+    generator = torch.Generator(device=DEFAULT_DEVICE).manual_seed(5)
+    again = torch.Generator(device=DEFAULT_DEVICE).set_state(generator.get_state())
+    drawn = draw_with_replacement(weights, 200_000, generator)
+    u = torch.rand(200_000, dtype=torch.float64, device=DEFAULT_DEVICE, generator=again).cpu().numpy()
+    cdf = np.cumsum(weights.cpu().double().numpy())
+    np.testing.assert_array_equal(drawn.cpu().numpy(), np.searchsorted(cdf, u * cdf[-1], side="right"))
+    counts = torch.bincount(drawn.cpu(), minlength=6).double() / 200_000
+    assert counts[[0, 3, 5]].sum() == 0
+    torch.testing.assert_close(counts[[1, 2, 4]], torch.tensor([0.1, 0.3, 0.6], dtype=torch.float64), atol=5e-3, rtol=0)
+    same = draw_with_replacement(weights, 200_000, torch.Generator(device=DEFAULT_DEVICE).manual_seed(5))
+    assert torch.equal(same, drawn)
+    # trailing zero weights are never drawn either (the clamp covers u * total rounding up to the total)
+    assert int(draw_with_replacement(torch.tensor([2.0, 0.0, 0.0]), 1000, torch.Generator()).max()) == 0
+    for bad in (torch.zeros(4), torch.tensor([1.0, float("nan")]), torch.zeros(0)):
+        with pytest.raises(ValueError, match="not all zero"):
+            draw_with_replacement(bad, 3, torch.Generator())
 
 
 def test_regularizer_is_the_mean_opacity_and_scale():

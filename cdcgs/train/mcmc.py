@@ -40,7 +40,26 @@ from .cdc import Consistency
 from .model import GaussianModel
 from .strategy import StepContext, StrategyOptions, strategy_option
 
-__all__ = ["MCMC", "copy_weights", "position_noise", "relocation"]
+__all__ = ["MCMC", "copy_weights", "draw_with_replacement", "position_noise", "relocation"]
+
+
+def draw_with_replacement(weights: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+    """[count] indices drawn with replacement, with probability proportional to ``weights`` [N]
+    (non-negative, some positive): uniforms from ``generator`` inverted through the cumulative sum.
+
+    Unlike ``torch.multinomial``, every run and every process draws the same indices from the same
+    weights and generator state: the cumulative sum is taken on the host, in float64, where CUDA's
+    scan (which ``torch.multinomial`` uses) may round differently from one run to the next
+    (pytorch/pytorch#75240). The processes of a data-parallel run relocate by these draws, and two
+    that drew differently no longer train one model (seen on two GPUs at 6M Gaussians)."""
+    cdf = weights.detach().double().cpu().cumsum(0)
+    total = float(cdf[-1]) if cdf.numel() else 0.0
+    if not total > 0.0 or not math.isfinite(total):
+        raise ValueError(f"draw_with_replacement: the weights must be finite and not all zero (sum {total})")
+    last = int(torch.searchsorted(cdf, cdf[-1:]))  # the last positive weight: u * total may round up to total
+    u = torch.rand(count, dtype=torch.float64, device=weights.device, generator=generator) * total
+    drawn = torch.searchsorted(cdf.to(weights.device), u, right=True)  # the first i with cdf[i] > u
+    return drawn.clamp_(max=last)
 
 
 def copy_weights(max_copies: int, dtype=torch.float64, device="cpu") -> torch.Tensor:
@@ -225,7 +244,7 @@ class MCMC(Consistency, StrategyOptions):
         alive_index = alive.nonzero()[:, 0]
         sources = first
         if rest > 0:
-            drawn = torch.multinomial(opacity[alive_index], rest, replacement=True, generator=ctx.generator)
+            drawn = draw_with_replacement(opacity[alive_index], rest, ctx.generator)
             sources = torch.cat([first, alive_index[drawn]])
         ops.relocate(
             model, ctx.optimizer, targets, sources, self._copy(ctx, sources), restart_targets=self.reset_target_moments
@@ -239,7 +258,7 @@ class MCMC(Consistency, StrategyOptions):
         count = max(0, target - model.num)
         if count == 0:
             return {"added": 0}
-        sources = torch.multinomial(model.opacities().detach(), count, replacement=True, generator=ctx.generator)
+        sources = draw_with_replacement(model.opacities().detach(), count, ctx.generator)
         values = self._copy(ctx, sources)
         ops.relocate(model, ctx.optimizer, sources, sources, values)  # the sources' new opacity and scales
         ops.append(model, ctx.optimizer, {name: p.detach()[sources] for name, p in model.params.items()})
