@@ -122,7 +122,7 @@ def test_gaussian_complexity_matches_dense_reference(device, seed, n, width, hei
     for name in ("tile_ranges", "sorted_gauss_ids", "means2d", "conics", "opacities"):
         torch.testing.assert_close(getattr(lists, name), getattr(info, name), atol=0, rtol=0)
     # Bit for bit, except the sums on CUDA: their atomic adds land in any order there.
-    sum_rtol = 0 if device == "cpu" else 1e-6
+    sum_rtol = 0 if device == "cpu" else 1e-5
     for got, expected, rtol in zip(
         gaussian_complexity(lists, hf_map.to(device), w_max=w_max), (max_out, sum_out, count), (0, sum_rtol, 0)
     ):

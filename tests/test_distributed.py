@@ -184,10 +184,18 @@ def test_torchrun_launches_the_command_line(small_scene, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["processes"], metrics["batch_size"], metrics["iterations"]) == (2, 2, 22)
     comm = metrics["communication"]
-    assert (comm["timed_steps"], comm["backend"]) == (1, "gloo"), comm
-    assert 0 < comm["all_reduce_ms_per_step"] < comm["step_ms"] and comm["wait_ms_per_step"] >= 0, comm
+    assert (comm["timed_steps"], comm["backend"], len(comm["per_process"])) == (1, "gloo", 2), comm
+    for key in ("wait_ms_per_step", "all_reduce_ms_per_step", "all_reduce_bytes_per_step", "step_ms"):
+        assert comm[key] == pytest.approx(sum(p[key] for p in comm["per_process"]) / 2)
+    for own in comm["per_process"]:
+        assert own["wait_ms_per_step"] > 0 and 0 < own["all_reduce_ms_per_step"] < own["step_ms"], own
     assert comm["share"] == pytest.approx(comm["all_reduce_ms_per_step"] / comm["step_ms"])
     assert comm["wait_share"] == pytest.approx(comm["wait_ms_per_step"] / comm["step_ms"])
+    # the flat buffer: every Gaussian's 59 gradients, the statistics' additions and the two flags
+    sizes = {p["all_reduce_bytes_per_step"] for p in comm["per_process"]}
+    assert len(sizes) == 1 and sizes.pop() >= 4 * (59 * metrics["num_gaussians"] + 2)
+    rate = comm["all_reduce_bytes_per_step"] / comm["all_reduce_ms_per_step"] / 1e6
+    assert comm["all_reduce_gb_per_second"] == pytest.approx(rate)
 
 
 @pytest.mark.parametrize("world", ["1", "2"])

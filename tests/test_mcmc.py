@@ -94,10 +94,10 @@ def test_draws_with_replacement_invert_the_float64_cumulative_sum():
     torch.testing.assert_close(counts[[1, 2, 4]], torch.tensor([0.1, 0.3, 0.6], dtype=torch.float64), atol=5e-3, rtol=0)
     same = draw_with_replacement(weights, 200_000, torch.Generator(device=DEFAULT_DEVICE).manual_seed(5))
     assert torch.equal(same, drawn)
-    # trailing zero weights are never drawn either (the clamp covers u * total rounding up to the total)
+    # trailing zero weights are never drawn either
     assert int(draw_with_replacement(torch.tensor([2.0, 0.0, 0.0]), 1000, torch.Generator()).max()) == 0
-    for bad in (torch.zeros(4), torch.tensor([1.0, float("nan")]), torch.zeros(0)):
-        with pytest.raises(ValueError, match="not all zero"):
+    for bad in (torch.zeros(4), torch.tensor([1.0, float("nan")]), torch.zeros(0), torch.tensor([1.0, -5.0, 10.0])):
+        with pytest.raises(ValueError, match="non-negative and not all zero"):
             draw_with_replacement(bad, 3, torch.Generator())
 
 

@@ -52,11 +52,14 @@ def draw_with_replacement(weights: torch.Tensor, count: int, generator: torch.Ge
     scan (which ``torch.multinomial`` uses) may round differently from one run to the next
     (pytorch/pytorch#75240). The processes of a data-parallel run relocate by these draws, and two
     that drew differently no longer train one model (seen on two GPUs at 6M Gaussians)."""
-    cdf = weights.detach().double().cpu().cumsum(0)
+    host = weights.detach().cpu().double()
+    cdf = host.cumsum(0)
     total = float(cdf[-1]) if cdf.numel() else 0.0
-    if not total > 0.0 or not math.isfinite(total):
-        raise ValueError(f"draw_with_replacement: the weights must be finite and not all zero (sum {total})")
-    last = int(torch.searchsorted(cdf, cdf[-1:]))  # the last positive weight: u * total may round up to total
+    if not total > 0.0 or not math.isfinite(total) or bool((host < 0).any()):
+        raise ValueError(
+            f"draw_with_replacement: the weights must be finite, non-negative and not all zero (sum {total})"
+        )
+    last = int(torch.searchsorted(cdf, cdf[-1:]))  # the last positive weight (a guard: u < 1 keeps u * total < total)
     u = torch.rand(count, dtype=torch.float64, device=weights.device, generator=generator) * total
     drawn = torch.searchsorted(cdf.to(weights.device), u, right=True)  # the first i with cdf[i] > u
     return drawn.clamp_(max=last)

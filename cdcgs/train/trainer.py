@@ -122,6 +122,24 @@ def refinement_seconds(events: list[dict]) -> dict:
     }
 
 
+def mean_communication(summaries: list[dict], backend: str | None) -> dict:
+    """metrics.json's ``communication``: the processes' timings (:meth:`Trainer._communication_summary`)
+    averaged, with the shares of the timed step, the all-reduce's rate, and each process's own."""
+    if not all(s.get("timed_steps") for s in summaries):
+        return {"timed_steps": 0, "backend": backend}
+    keys = ("wait_ms_per_step", "all_reduce_ms_per_step", "all_reduce_bytes_per_step", "step_ms")
+    mean = {k: sum(s[k] for s in summaries) / len(summaries) for k in keys}
+    return {
+        "timed_steps": summaries[0]["timed_steps"],
+        **mean,
+        "share": mean["all_reduce_ms_per_step"] / max(mean["step_ms"], 1e-9),
+        "wait_share": mean["wait_ms_per_step"] / max(mean["step_ms"], 1e-9),
+        "all_reduce_gb_per_second": mean["all_reduce_bytes_per_step"] / max(mean["all_reduce_ms_per_step"], 1e-9) / 1e6,
+        "backend": backend,
+        "per_process": summaries,
+    }
+
+
 class Trainer:
     """Runs one training from a :class:`TrainConfig` (``run()``), or resumes it.
 
@@ -152,9 +170,10 @@ class Trainer:
         # Reduced over the processes every step: (a signal is pending, a render met NaN) on any.
         self._flags = torch.zeros(2)
         self._nonfinite_at: int | None = None  # the iteration whose render met NaN, on this process
-        self._communication: list[tuple[float, float, float]] = []  # (wait, all-reduce, step) ms of timed steps
-        self._reduce_ms = 0.0
-        self._wait_ms = 0.0
+        # (wait ms, all-reduce ms, step ms, bytes reduced) of each timed step
+        self._communication: list[tuple[float, float, float, int]] = []
+        self._reduce_ms = self._wait_ms = 0.0
+        self._reduce_bytes = 0
         self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
 
     # ----------------------------------------------------------------------------- set-up
@@ -444,21 +463,19 @@ class Trainer:
             torch.cuda.reset_peak_memory_stats(self.device)
 
     def _communication_summary(self) -> dict:
-        """The all-reduce's share of a step, from the timed steps (one in
-        ``TIME_COMMUNICATION_EVERY``, each synchronised around its all-reduce): ``wait_ms_per_step``
-        is how long this rank waited for the slowest one before it (the batch's imbalance),
-        ``all_reduce_ms_per_step`` the gradients' all-reduce after that wait."""
+        """This process's communication over the timed steps (one in ``TIME_COMMUNICATION_EVERY``,
+        each synchronised around its parts): ``wait_ms_per_step``, how long it waited for the
+        slowest process before the all-reduce (a one-number all-reduce: the batch's imbalance), and
+        ``all_reduce_ms_per_step``, the gradients' all-reduce after that wait, with its bytes."""
         if not self._communication:
             return {"timed_steps": 0}
-        wait_ms, reduce_ms, step_ms = (sum(column) / len(self._communication) for column in zip(*self._communication))
+        wait_ms, reduce_ms, step_ms, size = (sum(c) / len(self._communication) for c in zip(*self._communication))
         return {
             "timed_steps": len(self._communication),
-            "all_reduce_ms_per_step": reduce_ms,
             "wait_ms_per_step": wait_ms,
+            "all_reduce_ms_per_step": reduce_ms,
+            "all_reduce_bytes_per_step": size,
             "step_ms": step_ms,
-            "share": reduce_ms / max(step_ms, 1e-9),
-            "wait_share": wait_ms / max(step_ms, 1e-9),
-            "backend": self.ranks.backend,
         }
 
     def _evaluate(self, final: bool) -> dict:
@@ -547,7 +564,7 @@ class Trainer:
         if timed:
             self._synchronize()
             step_ms = (time.perf_counter() - step_start) * 1e3
-            self._communication.append((self._wait_ms, self._reduce_ms, step_ms))
+            self._communication.append((self._wait_ms, self._reduce_ms, step_ms, self._reduce_bytes))
         merged = {}
         for _, log in self.step_events:
             merged.update(log)
@@ -628,6 +645,7 @@ class Trainer:
             self.ranks.all_reduce_(torch.zeros(1, device=self.device))
             self._synchronize()
             self._wait_ms = (time.perf_counter() - start) * 1e3
+            self._reduce_bytes = 4 * (sum(p.numel() for p in params) + sum(e.numel() for e in extras))
             start = time.perf_counter()
         reduced = self.ranks.reduce_gradients(params, count, extras)
         if visible is not None:
@@ -846,7 +864,9 @@ class Trainer:
             "peak_gpu_memory_gb_per_process": peaks,
         }
         if self.ranks.distributed:
-            result["communication"] = self._communication_summary()
+            # every process's, since the wait differs: the slower one waits less
+            summaries = self.ranks.all_gather_object(self._communication_summary())
+            result["communication"] = mean_communication(summaries, self.ranks.backend)
         if not self.ranks.is_main:
             return result
         outputs.write_json(os.path.join(self.out, outputs.METRICS), result)
