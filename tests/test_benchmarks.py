@@ -3,6 +3,7 @@
 import argparse
 import json
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -244,6 +245,32 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
     for bad in (["--configs", "2x1"], ["--configs", "two"], ["--strategies", "nonsense"]):
         with pytest.raises(SystemExit):
             scaling_table.main([*argv, *bad])
+
+
+def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
+    import allreduce
+
+    out = tmp_path / "allreduce.json"
+    script = os.path.join(os.path.dirname(allreduce.__file__), "allreduce.py")
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", script]
+    command += ["--device", "cpu", "--gaussians", "300", "2000", "--repeats", "2", "--out", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(out.read_text())
+    assert (report["processes"], report["backend"], [r["gaussians"] for r in report["rows"]]) == (
+        2,
+        "gloo",
+        [300, 2000],
+    )
+    for row in report["rows"]:  # 59 gradients and 2 statistics per Gaussian, float32
+        assert row["bytes"] == 4 * 61 * row["gaussians"]
+        assert min(row["pack_ms"], row["all_reduce_ms"]) > 0 and row["exchange_ms"] >= 0
+        assert row["all_reduce_gb_per_second"] == pytest.approx(row["bytes"] / row["all_reduce_ms"] / 1e6)
+    assert done.stdout.count("| 2,000 |") == 1, "rank 0 alone prints the table"
+    with pytest.raises(SystemExit):
+        allreduce.main(["--device", "cpu"])  # one process: refused
+    with pytest.raises(SystemExit):
+        allreduce.main(["--device", "cpu", "--gaussians", "0"])
 
 
 def test_eval_memory_measures_every_setting_and_its_own_process_gets_its_variable(tmp_path, capsys):

@@ -1,0 +1,148 @@
+"""The gradient exchange of a data-parallel step alone, at the sizes of real runs.
+
+    torchrun --standalone --nproc_per_node=2 benchmarks/allreduce.py \
+        [--gaussians 1000000 3000000 6000000] [--repeats 20] [--out allreduce.json] [--device auto]
+
+For each count N, every process holds the gradients of N Gaussians (59 floats each, in the six
+tensors of ``cdcgs.train.model.PARAM_NAMES``) and the densification statistics' additions that
+`3dgs` sends with them (2 N floats), and times, with a synchronisation before and after each, the
+median of ``--repeats`` rounds after two untimed ones:
+
+- ``pack``: the flat buffer alone (``torch.cat``, as ``Ranks.reduce_gradients`` builds it);
+- ``all_reduce``: ``all_reduce`` of a buffer of that size alone;
+- ``exchange``: ``Ranks.reduce_gradients`` whole (pack, all-reduce, division, gradients back).
+
+Bytes per second are the buffer's bytes over the time (for two processes the same as NCCL's bus
+bandwidth). Rank 0 prints the table and writes ``--out`` (JSON) with the machine and the date.
+``--device auto`` puts process i on GPU i (NCCL), ``cpu`` runs on the CPU (gloo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+from cdcgs.train.distributed import Ranks, rank_device
+from cdcgs.train.model import PARAM_NAMES
+
+# floats per Gaussian of each parameter, in PARAM_NAMES's order (SH of degree 3: 1 + 15 coefficients)
+WIDTHS = {"means": 3, "log_scales": 3, "quats": 4, "opacity_logits": 1, "sh_dc": 3, "sh_rest": 45}
+STATISTICS = 2  # floats per Gaussian of 3dgs's additions (gradient norms and view counts)
+
+
+def timed(device: torch.device, call, repeats: int) -> float:
+    """Median milliseconds of ``call()`` over ``repeats`` rounds (two untimed first)."""
+    times = []
+    for round_ in range(repeats + 2):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start = time.perf_counter()
+        call()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        if round_ >= 2:
+            times.append((time.perf_counter() - start) * 1e3)
+    return statistics.median(times)
+
+
+def measure(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
+    """The three timings of one count ``n`` (every process calls this with the same ``n``)."""
+    generator = torch.Generator(device=device).manual_seed(ranks.rank)
+    params = []
+    for name in PARAM_NAMES:
+        p = torch.zeros(n, WIDTHS[name], device=device, requires_grad=True)
+        p.grad = torch.randn(n, WIDTHS[name], device=device, generator=generator)
+        params.append(p)
+    extras = [torch.rand(n, device=device, generator=generator) for _ in range(STATISTICS)]
+    grads = [p.grad for p in params]
+    size = sum(p.numel() for p in params) + sum(e.numel() for e in extras)
+    flat = torch.empty(size, device=device)
+
+    def exchange():
+        for p, g in zip(params, grads):  # the step's gradients again (the exchange divides them)
+            p.grad = g.clone()
+        ranks.reduce_gradients(params, ranks.world, extras)
+
+    pieces = [g.reshape(-1) for g in grads] + extras
+    row = {"gaussians": n, "bytes": 4 * size}
+    row["pack_ms"] = timed(device, lambda: torch.cat(pieces), repeats)
+    row["all_reduce_ms"] = timed(device, lambda: ranks.all_reduce_(flat), repeats)
+    # less the clones that restore the gradients, timed apart
+    clones = timed(device, lambda: [g.clone() for g in grads], repeats)
+    row["exchange_ms"] = max(timed(device, exchange, repeats) - clones, 0.0)
+    for part in ("all_reduce", "exchange"):
+        row[f"{part}_gb_per_second"] = row["bytes"] / row[f"{part}_ms"] / 1e6 if row[f"{part}_ms"] > 0 else None
+    return row
+
+
+def table(report: dict) -> str:
+    lines = [
+        f"{report['processes']} processes ({report['backend']}) on {report['device']}, {report['date']}; "
+        f"median of {report['repeats']} rounds (`python benchmarks/allreduce.py`):",
+        "",
+        "| Gaussians | buffer | pack | all-reduce | GB/s | exchange (whole) | GB/s |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in report["rows"]:
+        rates = [
+            f"{r[k]:.1f}" if r[k] is not None else "—" for k in ("all_reduce_gb_per_second", "exchange_gb_per_second")
+        ]
+        lines.append(
+            f"| {r['gaussians']:,} | {r['bytes'] / 1e6:.1f} MB | {r['pack_ms']:.3f} ms | {r['all_reduce_ms']:.3f} ms "
+            f"| {rates[0]} | {r['exchange_ms']:.3f} ms | {rates[1]} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--gaussians", type=int, nargs="+", default=[1_000_000, 3_000_000, 6_000_000])
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--device", default="auto", help="auto (a GPU per process) or cpu")
+    parser.add_argument("--out", default=None, help="JSON file of the results (rank 0 writes it)")
+    args = parser.parse_args(argv)
+    if any(n < 1 for n in args.gaussians):
+        parser.error(f"--gaussians must be positive, got {args.gaussians}")
+    if args.repeats < 1:
+        parser.error(f"--repeats must be positive, got {args.repeats}")
+    if args.device not in ("auto", "cpu"):
+        parser.error(f"--device must be auto or cpu, got {args.device!r}")
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ.get("WORLD_SIZE", "1")))
+    device = torch.device(rank_device(args.device, local_rank, local_world))
+    ranks = Ranks.from_environment(device)
+    if not ranks.distributed:
+        parser.error("one process: launch with torchrun --nproc_per_node=2 (or more)")
+    try:
+        rows = [measure(ranks, device, n, args.repeats) for n in args.gaussians]
+    finally:
+        ranks.close(wait=True)
+    if not ranks.is_main:
+        return 0
+    report = {
+        "processes": ranks.world,
+        "backend": ranks.backend,
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "date": datetime.date.today().isoformat(),
+        "repeats": args.repeats,
+        "rows": rows,
+    }
+    print(table(report))
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
