@@ -270,12 +270,8 @@ class Ranks:
         self.all_reduce_(flat)
         flat_grads = flat[: sum(p.numel() for p in params)].div_(count)
         offset = 0
-        for p in params:
-            chunk = flat_grads[offset : offset + p.numel()].view_as(p)
-            if p.grad is None:
-                p.grad = chunk.clone()
-            else:
-                p.grad.copy_(chunk)
+        for p in params:  # views of the buffer: no copy back (the optimizer reads them in place)
+            p.grad = flat_grads[offset : offset + p.numel()].view_as(p)
             offset += p.numel()
         out = []
         for e in extras:
