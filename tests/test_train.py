@@ -324,3 +324,44 @@ def test_numeric_options_are_checked_before_any_work(tiny_scene, tmp_path, capsy
     assert cli_main([*argv, option, value]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "selective"])
+def test_a_step_waits_for_the_gpu_once_on_cuda(tiny_scene, tmp_path, monkeypatch, optimizer, device):
+    """Between refinements and log points a CUDA step makes the host wait for the GPU once: where
+    the render reads its pair count to size the sort (issue 21). torch's sync debug mode raises on
+    any other synchronising call (.item(), a blocking copy, a shape read from the device)."""
+    if device != "cuda":
+        pytest.skip("host synchronisations are a CUDA matter")
+    from cdcgs import render
+
+    reads = []
+    real = render._count_reader
+
+    def allowed(nonfinite, names):
+        read = real(nonfinite, names)
+
+        def read_count(offsets):
+            reads.append(1)
+            torch.cuda.set_sync_debug_mode("default")
+            try:
+                return read(offsets)
+            finally:
+                torch.cuda.set_sync_debug_mode("error")
+
+        return read_count
+
+    monkeypatch.setattr(render, "_count_reader", allowed)
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path, device="cuda", iters=30, optimizer=optimizer))
+    trainer._setup()
+    for _ in range(3):  # kernels compiled, the allocator's blocks in place
+        trainer.train_step()
+    torch.cuda.synchronize()
+    reads.clear()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            trainer.train_step()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert len(reads) == 3, "one pair count read per step"

@@ -631,9 +631,12 @@ class Trainer:
         if not self.ranks.distributed:
             self.ranks.reduce_gradients(params, count)
             return
-        flags = torch.tensor(
-            [float(self.signals.pending is not None), float(self._nonfinite_at is not None)], device=self.device
-        )
+        # Set on the device: torch.tensor(..., device=cuda) copies from pageable memory, which
+        # waits for the stream, and the host would lose its lead on the GPU at every step.
+        flags = torch.zeros(2, device=self.device)
+        for index, raised in enumerate((self.signals.pending is not None, self._nonfinite_at is not None)):
+            if raised:
+                flags[index] = 1.0
         extras = [*self.statistics.deltas(self.strategy_state), flags]
         if visible is not None:
             extras.append(visible.float())
