@@ -320,3 +320,25 @@ def test_the_backend_is_nccl_only_where_every_process_has_a_gpu_of_its_own():
         OptionError, match=r"nccl needs a GPU per process: 2 processes .* 2 GPU\(s\), device cuda:0 for all"
     ):
         choose_backend("nccl", cuda0, 2, 2, spread=False, nccl=True)
+
+
+def test_the_ranks_checksum_sees_any_flipped_bit_and_any_swap():
+    """The parameters' checksum (summed on their device, read once) is equal for equal tensors
+    and differs when one bit of one element flips, wherever it is, or when two elements swap."""
+    from cdcgs.train.distributed import _checksum
+
+    g = torch.Generator().manual_seed(0)
+    params = {
+        name: torch.randn(*shape, generator=g) for name, shape in (("means", (300, 3)), ("sh_rest", (300, 15, 3)))
+    }
+    base = _checksum(params)
+    assert _checksum({k: v.clone() for k, v in params.items()}) == base
+    for name, tensor in params.items():
+        for position in (0, 1, tensor.numel() // 2, tensor.numel() - 1):
+            for bit in (0, 1, 22, 30, 31):
+                other = {k: v.clone() for k, v in params.items()}
+                other[name].reshape(-1).view(torch.int32)[position] ^= -(1 << 31) if bit == 31 else 1 << bit
+                assert _checksum(other) != base, (name, position, bit)
+    swapped = {k: v.clone() for k, v in params.items()}
+    swapped["means"].reshape(-1)[:2] = params["means"].reshape(-1)[:2].flip(0)
+    assert _checksum(swapped) != base
