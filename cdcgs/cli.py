@@ -542,6 +542,13 @@ def _add_process_parser(sub):
         help=f"fail when a smaller share of the images registers (default: {d.min_registered})",
     )
     p.add_argument("--seed", type=int, default=d.seed, help=f"pycolmap's random seed (default: {d.seed})")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=d.threads,
+        help="CPU threads of feature extraction, matching and mapping; 1 gives the same model every run "
+        "(default: 0, all cores, whose result varies slightly from run to run)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace what an earlier process wrote into --out")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     p.set_defaults(func=cmd_process)
@@ -564,6 +571,7 @@ def cmd_process(args) -> int:
         device=args.device,
         min_registered=args.min_registered,
         seed=args.seed,
+        threads=args.threads,
         overwrite=args.overwrite,
         progress=args.progress,
     )

@@ -56,7 +56,8 @@ class ProcessOptions:
     device: str = "auto"  # auto, cpu, cuda (features and matching)
     min_registered: float = 0.5  # fail when a smaller share of the images registers
     downscales: tuple = field(default=(2, 4, 8))
-    seed: int = 0  # the mappers' random seed (their threads still vary the result slightly)
+    seed: int = 0  # the mappers' random seed (with several threads the result still varies slightly)
+    threads: int = 0  # CPU threads of extraction, matching and mapping; 0: all cores, 1: reproducible
     overwrite: bool = False
     progress: bool = True
 
@@ -69,6 +70,7 @@ class ProcessOptions:
                 f"--camera-model must be one of {', '.join(CAMERA_MODELS)}, got {self.camera_model!r}",
             ),
             (self.device in ("auto", "cpu", "cuda"), f"--device must be auto, cpu or cuda, got {self.device!r}"),
+            (self.threads >= 0, f"--threads must be 0 (all cores) or more, got {self.threads}"),
             (self.frames >= 3, f"--frames must be at least 3, got {self.frames}"),
             (self.overlap >= 1, f"--overlap must be at least 1, got {self.overlap}"),
             (0.0 <= self.min_registered <= 1.0, f"--min-registered must be in [0, 1], got {self.min_registered}"),
@@ -277,6 +279,7 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.max_image_size = options.max_image_size
             extraction.sift.max_num_features = options.max_features
+            extraction.num_threads = _threads(options)
             # One shared camera; photos of several sizes (portrait and landscape) get one per size,
             # since COLMAP's single-camera mode skips every image of another size than the first.
             sizes = _image_sizes(input_dir, names)
@@ -306,6 +309,7 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
                 matcher = "exhaustive"  # no offline alternative without GPS or a vocabulary tree
         with stages.stage("matching"):
             matching = pycolmap.FeatureMatchingOptions()
+            matching.num_threads = _threads(options)
             if matcher == "exhaustive":
                 pycolmap.match_exhaustive(database, matching_options=matching, device=device)
             elif matcher == "sequential":
@@ -385,6 +389,11 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
     return summary
 
 
+def _threads(options: ProcessOptions) -> int:
+    """pycolmap's ``num_threads``: -1 for all cores."""
+    return options.threads if options.threads > 0 else -1
+
+
 def _map(pycolmap, database: str, image_dir: str, sparse_all: str, options: ProcessOptions, count: int) -> dict:
     """The models pycolmap's mapper builds (index -> Reconstruction), written under ``sparse_all``."""
     from tqdm import tqdm
@@ -397,9 +406,11 @@ def _map(pycolmap, database: str, image_dir: str, sparse_all: str, options: Proc
         pycolmap.calibrate_view_graph(database, calibration)
         pipeline = pycolmap.GlobalPipelineOptions()
         pipeline.random_seed = options.seed
+        pipeline.num_threads = _threads(options)
         return pycolmap.global_mapping(database, image_dir, sparse_all, pipeline)
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.random_seed = options.seed
+    pipeline.num_threads = _threads(options)
     bar = tqdm(total=count, desc="registered", unit="img", disable=not options.progress, leave=False)
     try:
         return pycolmap.incremental_mapping(
