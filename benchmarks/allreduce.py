@@ -66,14 +66,14 @@ def measure(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
     extras = [torch.rand(n, device=device, generator=generator) for _ in range(STATISTICS)]
     grads = [p.grad for p in params]
     size = sum(p.numel() for p in params) + sum(e.numel() for e in extras)
-    flat = torch.empty(size, device=device)
+    pieces = [g.reshape(-1) for g in grads] + extras
+    flat = torch.cat(pieces)  # real values: uninitialised memory may hold denormals, slow on a CPU
 
     def exchange():
         for p, g in zip(params, grads):  # the step's gradients again (the exchange divides them)
             p.grad = g.clone()
         ranks.reduce_gradients(params, ranks.world, extras)
 
-    pieces = [g.reshape(-1) for g in grads] + extras
     row = {"gaussians": n, "bytes": 4 * size}
     row["pack_ms"] = timed(device, lambda: torch.cat(pieces), repeats)
     row["all_reduce_ms"] = timed(device, lambda: ranks.all_reduce_(flat), repeats)
