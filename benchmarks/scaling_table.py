@@ -8,7 +8,10 @@ for G > 1) training with ``--batch-size B``; ``--iters`` counts views seen, so e
 same number of images. Each run is its own launch, started after the one before it ended, so that
 none shares a GPU or the host, and is preceded by a ``--warmup``-iteration launch of the same
 command into a scratch folder (Warp compiles its kernels there, not in the timed run). A config
-that needs more GPUs than the machine has is skipped, and said so.
+that needs more GPUs than the machine has is skipped, and said so. ``--side-by-side`` runs the
+one-GPU configs at the same time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``), as many
+at once as the machine has GPUs: each is still alone on its GPU, but they share the host; the
+configs of several GPUs then run one after another, alone on the machine. The table says which.
 
 The table (steps, training time, images per second and its ratio to the strategy's first config,
 test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, the largest peak GPU memory of a process, the
@@ -28,6 +31,7 @@ import re
 import shutil
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -70,8 +74,11 @@ def available_gpus() -> int:
         return 0
 
 
-def train(strategy: str, config: str, args) -> dict:
-    """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}."""
+def train(strategy: str, config: str, args, gpu: int | None = None) -> dict:
+    """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}.
+
+    ``gpu``: the one GPU the run may see (``CUDA_VISIBLE_DEVICES``); None leaves the variable as it is.
+    """
     processes, _ = parse_config(config)
     folder = os.path.join(args.out, f"{strategy}-{config}")
     metrics_path = os.path.join(folder, "metrics.json")
@@ -85,10 +92,13 @@ def train(strategy: str, config: str, args) -> dict:
         return {"skipped": why}
     scratch = os.path.join(args.out, f".warm-{strategy}-{config}")
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
+    if gpu is not None:
+        environment["CUDA_VISIBLE_DEVICES"] = str(gpu)
     steps = [(args.warmup, scratch)] if args.warmup > 0 else []
     for iters, out in [*steps, (args.iters, folder)]:
         line = command(strategy, config, args, out, iters)
-        print(f"{strategy} {config}: {' '.join(line[1:])}", flush=True)
+        where = f" (GPU {gpu})" if gpu is not None else ""
+        print(f"{strategy} {config}{where}: {' '.join(line[1:])}", flush=True)
         done = subprocess.run(line, cwd=ROOT, env=environment)
         if done.returncode != 0:
             raise SystemExit(
@@ -99,12 +109,41 @@ def train(strategy: str, config: str, args) -> dict:
         return json.load(f)
 
 
-def table(rows: dict[tuple[str, str], dict], machine: str, args) -> str:
+def train_all(args, gpus: int) -> dict[tuple[str, str], dict]:
+    """Every (strategy, config) run, in table order; one-GPU runs side by side when asked and possible."""
+    runs = [(s, c) for s in args.strategies for c in args.configs]
+    results: dict[tuple[str, str], dict] = {}
+    if args.side_by_side and gpus > 1:
+        singles = [run for run in runs if parse_config(run[1])[0] == 1]
+        free = list(range(gpus))
+
+        def on_a_free_gpu(run):
+            gpu = free.pop()  # list.pop and append are atomic under the GIL; never more runs than GPUs
+            try:
+                return train(*run, args, gpu=gpu)
+            finally:
+                free.append(gpu)
+
+        with ThreadPoolExecutor(max_workers=gpus) as pool:
+            results.update(zip(singles, pool.map(on_a_free_gpu, singles)))
+    for run in runs:
+        if run not in results:
+            results[run] = train(*run, args)
+    return {run: results[run] for run in runs}
+
+
+def table(rows: dict[tuple[str, str], dict], machine: str, args, side_by_side: bool = False) -> str:
     """The markdown table of the runs, with what they ran on."""
     day = datetime.date.today().isoformat()
     scene = f"{os.path.basename(os.path.normpath(args.data))} `{args.images or 'images'}`"
+    how = (
+        f"each run alone on its GPU of {machine}: the one-GPU runs side by side on separate GPUs (sharing the host), "
+        "the others one after another"
+        if side_by_side
+        else f"each run alone on {machine}, one after another"
+    )
     lines = [
-        f"{scene}, {args.iters:,} views seen per run, each run alone on {machine}, one after another, {day}, "
+        f"{scene}, {args.iters:,} views seen per run, {how}, {day}, "
         f"commit {commit()} (`python benchmarks/scaling_table.py`):",
         "",
         "| strategy | GPUs × batch | steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG | LPIPS-Alex "
@@ -143,6 +182,11 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--warmup", type=int, default=20, help="iterations of the untimed launch before each run")
     parser.add_argument("--device", default="auto", help="auto (a GPU per process) or cpu")
+    parser.add_argument(
+        "--side-by-side",
+        action="store_true",
+        help="run the one-GPU configs at the same time, each on a GPU of its own (they share the host)",
+    )
     args = parser.parse_args(argv)
     check_common_arguments(parser, args)
     if args.warmup < 0:
@@ -162,13 +206,16 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"--strategies: unknown {', '.join(unknown)} (one of {', '.join(PRESETS)})")
     os.makedirs(args.out, exist_ok=True)
-    rows = {(s, c): train(s, c, args) for s in args.strategies for c in args.configs}
+    gpus = available_gpus()
+    side_by_side = args.side_by_side and gpus > 1
+    if args.side_by_side and not side_by_side:
+        print(f"--side-by-side: {gpus} GPU(s) here, so the runs go one after another", flush=True)
+    rows = train_all(args, gpus)
     devices = {m["device"] for m in rows.values() if "device" in m}
-    gpus = available_gpus() if args.device != "cpu" else 0
     machine = " / ".join(sorted(devices)) or "unknown"
-    if gpus > 1:
+    if gpus > 1 and args.device != "cpu":
         machine = f"a machine with {gpus} × {machine}"
-    text = table(rows, machine, args)
+    text = table(rows, machine, args, side_by_side)
     print("\n" + text)
     with open(os.path.join(args.out, "scaling.md"), "w") as f:
         f.write(text)

@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -245,6 +246,43 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
     for bad in (["--configs", "2x1"], ["--configs", "two"], ["--strategies", "nonsense"]):
         with pytest.raises(SystemExit):
             scaling_table.main([*argv, *bad])
+
+
+def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_path, monkeypatch):
+    import scaling_table
+
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
+    calls = []
+    real_run = subprocess.run
+
+    def recorded(line, **kwargs):
+        start = time.monotonic()
+        done = real_run(line, **kwargs)
+        if "--out" in line:  # a training, not the commit lookup
+            out = line[line.index("--out") + 1]
+            calls.append((out, kwargs["env"].get("CUDA_VISIBLE_DEVICES"), start, time.monotonic()))
+        return done
+
+    monkeypatch.setattr(scaling_table, "available_gpus", lambda: 2)
+    monkeypatch.setattr(scaling_table.subprocess, "run", recorded)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    out = tmp_path / "runs"
+    argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "6", "--device", "cpu"]
+    assert scaling_table.main([*argv, "--warmup", "0", "--configs", "1x1", "1x2", "2x2", "--side-by-side"]) == 0
+    runs = {os.path.basename(folder): (gpu, start, end) for folder, gpu, start, end in calls}
+    assert sorted(runs) == ["3dgs-1x1", "3dgs-1x2", "3dgs-2x2"]
+    (gpu_a, start_a, end_a), (gpu_b, start_b, end_b) = runs["3dgs-1x1"], runs["3dgs-1x2"]
+    assert {gpu_a, gpu_b} == {"0", "1"}, "each one-GPU run sees a GPU of its own"
+    assert max(start_a, start_b) < min(end_a, end_b), "the one-GPU runs overlap in time"
+    gpu_c, start_c, _ = runs["3dgs-2x2"]
+    assert gpu_c is None and start_c >= max(end_a, end_b), "the 2-process run comes after them, on every GPU"
+    text = (out / "scaling.md").read_text()
+    assert "side by side" in text
+    assert [line.split("|")[2].strip() for line in text.splitlines() if line.startswith("| 3dgs |")] == [
+        "1 × 1",
+        "1 × 2",
+        "2 × 2",
+    ], "the table keeps the order of the configs"
 
 
 def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
