@@ -64,6 +64,12 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
     history = json.load(open(out / "history.json"))
     assert [e["step"] for e in history["eval"]] == [100, 200, 250]
     assert read_ply(out / "point_cloud.ply").means.shape[0] == metrics["num_gaussians"]
+    held = ("peak_gpu_memory_reserved_gb", "warp_mempool_peak_gb", "gpu_memory_in_use_gb")
+    if device == "cuda":  # the caching allocator holds at least what was allocated; the device more still
+        reserved, pool, in_use = (metrics[key] for key in held)
+        assert reserved >= metrics["peak_gpu_memory_gb"] > 0 and pool >= 0 and in_use > metrics["peak_gpu_memory_gb"]
+    else:
+        assert [metrics[key] for key in held] == [None, None, None]
 
 
 def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):

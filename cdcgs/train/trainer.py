@@ -122,6 +122,27 @@ def refinement_seconds(events: list[dict]) -> dict:
     }
 
 
+def held_memory(device: torch.device, peak_reserved: int) -> dict:
+    """What the process held of the GPU besides the tensors it used (``peak_gpu_memory_gb``):
+    ``peak_gpu_memory_reserved_gb``, the most torch's caching allocator kept (freed blocks it holds
+    for reuse included); ``warp_mempool_peak_gb``, the most Warp's own allocations used at once
+    (its sorts' scratch space); ``gpu_memory_in_use_gb``, the device's memory in use at the end of
+    training, every process on the GPU and the CUDA contexts included (what nvidia-smi shows).
+    None on the CPU."""
+    if device.type != "cuda":
+        return {"peak_gpu_memory_reserved_gb": None, "warp_mempool_peak_gb": None, "gpu_memory_in_use_gb": None}
+    import warp as wp
+
+    wp_device = wp.device_from_torch(device)
+    pool = wp.get_mempool_used_mem_high(wp_device) if wp.is_mempool_enabled(wp_device) else 0
+    free, total = torch.cuda.mem_get_info(device)
+    return {
+        "peak_gpu_memory_reserved_gb": peak_reserved / 1e9,
+        "warp_mempool_peak_gb": pool / 1e9,
+        "gpu_memory_in_use_gb": (total - free) / 1e9,
+    }
+
+
 def mean_communication(summaries: list[dict], backend: str | None) -> dict:
     """metrics.json's ``communication``: the processes' timings (:meth:`Trainer._communication_summary`)
     averaged, with the shares of the timed step, the all-reduce's rate, and each process's own."""
@@ -166,6 +187,7 @@ class Trainer:
         self.signals = StopSignals()
         self.saved_step: int | None = None  # the iteration of the newest checkpoint in the folder
         self.peak_memory = {"train": 0, "eval": 0}  # bytes, of this process; evaluations apart
+        self.peak_reserved = 0  # bytes torch's caching allocator held at most (freed blocks it keeps included)
         self.step_events: list[tuple[int, dict]] = []  # (iteration, log) of the last step's refinements
         # Reduced over the processes every step: (a signal is pending, a render met NaN) on any.
         self._flags = torch.zeros(2)
@@ -460,6 +482,7 @@ class Trainer:
         if self.device.type == "cuda":
             peak = torch.cuda.max_memory_allocated(self.device)
             self.peak_memory[part] = max(self.peak_memory[part], peak)
+            self.peak_reserved = max(self.peak_reserved, torch.cuda.max_memory_reserved(self.device))
             torch.cuda.reset_peak_memory_stats(self.device)
 
     def _communication_summary(self) -> dict:
@@ -860,6 +883,7 @@ class Trainer:
             **refinement_seconds(self.history["strategy"]),
             "peak_gpu_memory_gb": self.peak_memory["train"] / 1e9 if cuda else None,
             "peak_gpu_memory_eval_gb": self.peak_memory["eval"] / 1e9 if cuda and self.scene.test else None,
+            **held_memory(self.device, self.peak_reserved),
             "device": torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu",
             "strategy": self.strategy.config(),
             "batch_size": self.config.batch_size,
