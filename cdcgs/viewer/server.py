@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 from dataclasses import dataclass
 
@@ -165,13 +167,37 @@ def serve(viewer: Viewer) -> None:
         print(f"cdcgs view: listening on {viewer.settings.host}: other machines can open it", flush=True)
     for note in viewer.viewable.notes:
         print(f"cdcgs view: {note}", flush=True)
-    try:
-        while True:
-            time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        viewer.stop()
+    with _stop_on_signals():
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            viewer.stop()
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+class _stop_on_signals:
+    """SIGINT and SIGTERM stop :func:`serve` cleanly, whatever their handlers were: a process
+    started in the background of a script inherits SIGINT ignored, and would never stop on it
+    (``cdcgs train`` handles both the same way). Only in the main thread, where Python runs
+    signal handlers; the handlers from before are put back on leaving."""
+
+    def __enter__(self):
+        self.previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self.previous[s] = signal.signal(s, _raise_interrupt)
+        return self
+
+    def __exit__(self, *exc):
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+        return False
 
 
 def training_viewer(trainer, settings: ViewerSettings) -> Viewer:
