@@ -224,3 +224,33 @@ def failing_setup(rank, world, scene, out):
 
         trainer_module.load_scene = broken
     Trainer(task_config(scene, out), dict(SCHEDULE)).run()
+
+
+def lpips_agreement(rank, world, scene, out):
+    """A run whose rank 1 lacks the LPIPS-VGG weights (stand-in networks, the same on both ranks
+    otherwise): the test metrics each rank returns."""
+    import torch
+
+    from cdcgs.train import trainer as trainer_module
+    from cdcgs.train.evaluate import LpipsMetric
+    from cdcgs.train.trainer import Trainer
+
+    class MeanAbsolute(torch.nn.Module):  # a stand-in LPIPS: any image size, one score per image
+        min_size = 1
+
+        def forward(self, a, b):
+            return (a - b).abs().mean(dim=(1, 2, 3))
+
+    def metric(device):
+        if rank == 0:
+            return LpipsMetric(device, nets={"vgg": MeanAbsolute(), "alex": MeanAbsolute()})
+        partial = LpipsMetric(device, nets={"alex": MeanAbsolute()})
+        partial.note = "LPIPS-vgg: its weights are not in this machine's cache (test)"
+        return partial
+
+    real = trainer_module.lpips_metric
+    trainer_module.lpips_metric = metric
+    try:
+        return Trainer(task_config(scene, out, iters=4), dict(SCHEDULE)).run()["test"]
+    finally:
+        trainer_module.lpips_metric = real

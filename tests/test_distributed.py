@@ -159,6 +159,19 @@ def test_a_failed_setup_stops_every_rank_with_the_cause(small_scene, tmp_path):
     assert not (tmp_path / "run").exists(), "the folder rank 0 made is removed again"
 
 
+def test_lpips_missing_on_one_process_is_left_out_on_every_one(small_scene, tmp_path):
+    """Each process looks for the LPIPS weights itself; the evaluation is split over them. A network
+    that one process lacks is scored by none (not over some views only), and the note names it."""
+    outs = run_ranks("lpips_agreement", 2, tmp_path, scene=small_scene, out=tmp_path / "run")
+    assert all("result" in o for o in outs), outs
+    first, second = (o["result"] for o in outs)
+    assert first["lpips_vgg"] is None and second["lpips_vgg"] is None
+    assert first["lpips_alex"] is not None and first["lpips_alex"] == second["lpips_alex"]
+    note = first["lpips_note"]
+    assert "LPIPS-vgg not scored" in note and "process 1: LPIPS-vgg: its weights are not in" in note, note
+    assert "process 0" not in note and "LPIPS-alex" not in note
+
+
 def test_ranks_that_drift_apart_stop(small_scene, tmp_path):
     outs = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "run", perturb_at=4, check_ranks_every=6)
     assert [o.get("error") for o in outs] == ["RankDrift", "RankDrift"], outs
@@ -333,6 +346,8 @@ def test_the_ranks_checksum_sees_any_flipped_bit_and_any_swap():
     }
     base = _checksum(params)
     assert _checksum({k: v.clone() for k, v in params.items()}) == base
+    if torch.cuda.is_available():  # the GPU machine: the same integer sums on the device
+        assert _checksum({k: v.cuda() for k, v in params.items()}) == base
     for name, tensor in params.items():
         for position in (0, 1, tensor.numel() // 2, tensor.numel() - 1):
             for bit in (0, 1, 22, 30, 31):

@@ -477,6 +477,22 @@ class Trainer:
             "--resume continues from it (the learning rate options may change)."
         )
 
+    def _agree_on_lpips(self) -> None:
+        """Score LPIPS with the networks that every process has: each looks for the weights on
+        its own machine, and an evaluation split over the processes would otherwise score some
+        views and not others. A network missing anywhere is left out everywhere, and the note
+        says on which process and why."""
+        have = self.ranks.all_gather_object((sorted(self.lpips.nets), self.lpips.note))
+        names = [set(names) for names, _ in have]
+        missing = set.union(*names) - set.intersection(*names)
+        if not missing:
+            return
+        for name in missing & set(self.lpips.nets):
+            del self.lpips.nets[name]
+        nets = ", ".join(f"LPIPS-{name}" for name in sorted(missing))
+        why = "; ".join(f"process {rank}: {note}" for rank, (_, note) in enumerate(have) if missing - names[rank])
+        self.lpips.note = f"{nets} not scored: some processes lack the weights ({why})"
+
     def _peak_memory(self, part: str) -> None:
         """Add the peak GPU memory since the last call to ``part`` ("train" or "eval")."""
         if self.device.type == "cuda":
@@ -786,6 +802,8 @@ class Trainer:
         except Exception as err:  # every process learns of it and stops
             error = err
         self.ranks.all_ok(error, "set-up")
+        if self.ranks.distributed:  # after the verdict: a collective inside the set-up could meet a failed one
+            self._agree_on_lpips()
         try:  # agreed on too: a failed write stops every process with its cause, not by a timeout
             if self.ranks.is_main:
                 outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
