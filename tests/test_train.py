@@ -70,6 +70,35 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
         assert reserved >= metrics["peak_gpu_memory_gb"] > 0 and pool >= 0 and in_use > metrics["peak_gpu_memory_gb"]
     else:
         assert [metrics[key] for key in held] == [None, None, None]
+    assert metrics["held_gpu_memory_per_process"] == [{key: metrics[key] for key in held}]
+
+
+def test_held_memory_asks_warp_for_an_indexed_device(monkeypatch):
+    """`--device cuda` (and auto) gives torch.device("cuda") without an index, which Warp's
+    device_from_torch cannot look up: held_memory passes the current ordinal. Stand-ins for the
+    CUDA and Warp calls, so this runs on the CPU."""
+    import warp as wp
+
+    from cdcgs.train.trainer import held_memory
+
+    asked = []
+
+    def device_from_torch(device):
+        asked.append(device)
+        if device.index is None:
+            raise TypeError("no ordinal")  # what Warp 1.19 does with "cuda"
+        return f"cuda:{device.index}"
+
+    monkeypatch.setattr(wp, "device_from_torch", device_from_torch)
+    monkeypatch.setattr(wp, "is_mempool_enabled", lambda device: True)
+    monkeypatch.setattr(wp, "get_mempool_used_mem_high", lambda device: 3_000_000_000)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 1)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (70_000_000_000, 80_000_000_000))
+    held = held_memory(torch.device("cuda"), 5_000_000_000)
+    assert asked == [torch.device("cuda", 1)]
+    assert held == {"peak_gpu_memory_reserved_gb": 5.0, "warp_mempool_peak_gb": 3.0, "gpu_memory_in_use_gb": 10.0}
+    held_memory(torch.device("cuda", 0), 0)
+    assert asked[-1] == torch.device("cuda", 0)
 
 
 def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):

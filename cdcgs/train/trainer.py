@@ -124,15 +124,17 @@ def refinement_seconds(events: list[dict]) -> dict:
 
 def held_memory(device: torch.device, peak_reserved: int) -> dict:
     """What the process held of the GPU besides the tensors it used (``peak_gpu_memory_gb``):
-    ``peak_gpu_memory_reserved_gb``, the most torch's caching allocator kept (freed blocks it holds
-    for reuse included); ``warp_mempool_peak_gb``, the most Warp's own allocations used at once
-    (its sorts' scratch space); ``gpu_memory_in_use_gb``, the device's memory in use at the end of
-    training, every process on the GPU and the CUDA contexts included (what nvidia-smi shows).
-    None on the CPU."""
+    ``peak_gpu_memory_reserved_gb``, the most torch's caching allocator kept over training and
+    evaluations (freed blocks it holds for reuse included); ``warp_mempool_peak_gb``, the most
+    Warp's own allocations used at once (its sorts' scratch space); ``gpu_memory_in_use_gb``, the
+    device's memory in use when the run ends (after the final evaluation), every process on the GPU
+    and the CUDA contexts included (what nvidia-smi shows). None on the CPU."""
     if device.type != "cuda":
         return {"peak_gpu_memory_reserved_gb": None, "warp_mempool_peak_gb": None, "gpu_memory_in_use_gb": None}
     import warp as wp
 
+    if device.index is None:  # "cuda": Warp needs the ordinal
+        device = torch.device("cuda", torch.cuda.current_device())
     wp_device = wp.device_from_torch(device)
     pool = wp.get_mempool_used_mem_high(wp_device) if wp.is_mempool_enabled(wp_device) else 0
     free, total = torch.cuda.mem_get_info(device)
@@ -888,9 +890,13 @@ class Trainer:
     def finish(self) -> dict:
         self.save()
         self._raise_pending()  # a signal during that save: the run is saved, stop here
+        if not self.scene.test:
+            self._peak_memory("train")  # (an evaluation takes it first)
         metrics = self._evaluate(final=True) if self.scene.test else {"views": 0}
         cuda = self.device.type == "cuda"
         peaks = self.ranks.all_gather_object(self.peak_memory["train"] / 1e9 if cuda else None)
+        held = held_memory(self.device, self.peak_reserved)
+        helds = self.ranks.all_gather_object(held)
         result = {
             "test": {k: v for k, v in metrics.items() if k != "per_view"},
             "per_view": metrics.get("per_view", []),
@@ -901,12 +907,13 @@ class Trainer:
             **refinement_seconds(self.history["strategy"]),
             "peak_gpu_memory_gb": self.peak_memory["train"] / 1e9 if cuda else None,
             "peak_gpu_memory_eval_gb": self.peak_memory["eval"] / 1e9 if cuda and self.scene.test else None,
-            **held_memory(self.device, self.peak_reserved),
+            **held,
             "device": torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu",
             "strategy": self.strategy.config(),
             "batch_size": self.config.batch_size,
             "processes": self.ranks.world,
             "peak_gpu_memory_gb_per_process": peaks,
+            "held_gpu_memory_per_process": helds,
         }
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
