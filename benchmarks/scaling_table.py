@@ -10,8 +10,11 @@ none shares a GPU or the host, and is preceded by a ``--warmup``-iteration launc
 command into a scratch folder (Warp compiles its kernels there, not in the timed run). A config
 that needs more GPUs than the machine has is skipped, and said so. ``--side-by-side`` runs the
 one-GPU configs at the same time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``), as many
-at once as the machine has GPUs: each is still alone on its GPU, but they share the host; the
-configs of several GPUs then run one after another, alone on the machine. The table says which.
+at once as the machine has GPUs: each is still alone on its GPU, but they share the host (which
+slowed them by 3-6% on two H200s). Each strategy's first config, when it is a one-GPU one, is
+then trained again alone (folder ``STRATEGY-CONFIG-alone``), and the speed-ups are taken against
+that run; the configs of several GPUs run one after another, alone on the machine. The table's
+"run" column says how each ran. GPUs only.
 
 The table (steps, training time, images per second and its ratio to the strategy's first config,
 test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, the largest peak GPU memory of a process, the
@@ -74,86 +77,102 @@ def available_gpus() -> int:
         return 0
 
 
-def train(strategy: str, config: str, args, gpu: int | None = None) -> dict:
+def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool = False) -> dict:
     """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}.
 
-    ``gpu``: the one GPU the run may see (``CUDA_VISIBLE_DEVICES``); None leaves the variable as it is.
+    ``gpu``: the one GPU the run may see, an index into this process's visible GPUs (its
+    ``CUDA_VISIBLE_DEVICES`` narrowed to that one); None leaves the variable as it is. ``alone``:
+    the side-by-side mode's baseline, trained into its own folder.
     """
     processes, _ = parse_config(config)
-    folder = os.path.join(args.out, f"{strategy}-{config}")
+    name = f"{strategy}-{config}" + ("-alone" if alone else "")
+    folder = os.path.join(args.out, name)
     metrics_path = os.path.join(folder, "metrics.json")
     if os.path.isfile(metrics_path) and not args.retrain:
-        print(f"{strategy} {config}: read the finished run in {folder}", flush=True)
+        print(f"{name}: read the finished run in {folder}", flush=True)
         with open(metrics_path) as f:
             return json.load(f)
     if args.device != "cpu" and processes > available_gpus():
         why = f"needs {processes} GPUs, this machine has {available_gpus()}"
-        print(f"{strategy} {config}: skipped ({why})", flush=True)
+        print(f"{name}: skipped ({why})", flush=True)
         return {"skipped": why}
-    scratch = os.path.join(args.out, f".warm-{strategy}-{config}")
+    scratch = os.path.join(args.out, f".warm-{name}")
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
     if gpu is not None:
-        environment["CUDA_VISIBLE_DEVICES"] = str(gpu)
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        environment["CUDA_VISIBLE_DEVICES"] = visible.split(",")[gpu].strip() if visible else str(gpu)
     steps = [(args.warmup, scratch)] if args.warmup > 0 else []
     for iters, out in [*steps, (args.iters, folder)]:
         line = command(strategy, config, args, out, iters)
-        where = f" (GPU {gpu})" if gpu is not None else ""
-        print(f"{strategy} {config}{where}: {' '.join(line[1:])}", flush=True)
+        where = f" (GPU {environment['CUDA_VISIBLE_DEVICES']})" if gpu is not None else ""
+        print(f"{name}{where}: {' '.join(line[1:])}", flush=True)
         done = subprocess.run(line, cwd=ROOT, env=environment)
         if done.returncode != 0:
-            raise SystemExit(
-                f"scaling_table: {strategy} {config} failed (exit status {done.returncode}); see its output above"
-            )
+            raise SystemExit(f"scaling_table: {name} failed (exit status {done.returncode}); see its output above")
     shutil.rmtree(scratch, ignore_errors=True)
     with open(metrics_path) as f:
         return json.load(f)
 
 
-def train_all(args, gpus: int) -> dict[tuple[str, str], dict]:
-    """Every (strategy, config) run, in table order; one-GPU runs side by side when asked and possible."""
+Row = tuple[str, str, str]  # (strategy, config, how it ran: "alone" or "side by side")
+
+
+def train_all(args, gpus: int) -> dict[Row, dict]:
+    """Every run, in table order: per strategy, with ``--side-by-side`` on a machine of several
+    GPUs, its first config alone (when it is a one-GPU one) and then every config, the one-GPU
+    ones side by side; else every config alone, one after another."""
     runs = [(s, c) for s in args.strategies for c in args.configs]
-    results: dict[tuple[str, str], dict] = {}
-    if args.side_by_side and gpus > 1:
-        singles = [run for run in runs if parse_config(run[1])[0] == 1]
-        free = list(range(gpus))
+    if not (args.side_by_side and gpus > 1):
+        return {(s, c, "alone"): train(s, c, args) for s, c in runs}
+    singles = [run for run in runs if parse_config(run[1])[0] == 1]
+    free = list(range(gpus))
 
-        def on_a_free_gpu(run):
-            gpu = free.pop()  # list.pop and append are atomic under the GIL; never more runs than GPUs
-            try:
-                return train(*run, args, gpu=gpu)
-            finally:
-                free.append(gpu)
+    def on_a_free_gpu(run):
+        gpu = free.pop()  # list.pop and append are atomic under the GIL; never more runs than GPUs
+        try:
+            return train(*run, args, gpu=gpu)
+        finally:
+            free.append(gpu)
 
-        with ThreadPoolExecutor(max_workers=gpus) as pool:
-            results.update(zip(singles, pool.map(on_a_free_gpu, singles)))
-    for run in runs:
-        if run not in results:
-            results[run] = train(*run, args)
-    return {run: results[run] for run in runs}
+    with ThreadPoolExecutor(max_workers=gpus) as pool:
+        beside = dict(zip(singles, pool.map(on_a_free_gpu, singles)))
+    rows: dict[Row, dict] = {}
+    for strategy in args.strategies:
+        first = args.configs[0]
+        if parse_config(first)[0] == 1:  # the speed-ups' baseline, alone on the machine
+            rows[(strategy, first, "alone")] = train(strategy, first, args, alone=True)
+        for config in args.configs:
+            if (strategy, config) in beside:
+                rows[(strategy, config, "side by side")] = beside[(strategy, config)]
+            else:
+                rows[(strategy, config, "alone")] = train(strategy, config, args)
+    return rows
 
 
-def table(rows: dict[tuple[str, str], dict], machine: str, args, side_by_side: bool = False) -> str:
-    """The markdown table of the runs, with what they ran on."""
+def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False) -> str:
+    """The markdown table of the runs, with what they ran on; speed-ups against each strategy's
+    first row (in side-by-side mode its first config alone)."""
     day = datetime.date.today().isoformat()
     scene = f"{os.path.basename(os.path.normpath(args.data))} `{args.images or 'images'}`"
     how = (
-        f"each run alone on its GPU of {machine}: the one-GPU runs side by side on separate GPUs (sharing the host), "
-        "the others one after another"
+        f"on {machine}: the one-GPU runs side by side, each on a GPU of its own and sharing the host, except the "
+        'baseline of the speed-ups ("alone"), and the others alone on the machine, one after another'
         if side_by_side
         else f"each run alone on {machine}, one after another"
     )
+    run_header, run_rule = ("| run ", "|---") if side_by_side else ("", "")
     lines = [
         f"{scene}, {args.iters:,} views seen per run, {how}, {day}, "
         f"commit {commit()} (`python benchmarks/scaling_table.py`):",
         "",
-        "| strategy | GPUs × batch | steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG | LPIPS-Alex "
-        "| Gaussians | peak GB / GPU | all-reduce | wait |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"| strategy | GPUs × batch {run_header}| steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG "
+        "| LPIPS-Alex | Gaussians | peak GB / GPU | all-reduce | wait |",
+        f"|---|---{run_rule}|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     first: dict[str, float] = {}
-    for (strategy, config), m in rows.items():
+    for (strategy, config, ran), m in rows.items():
         processes, batch = parse_config(config)
-        label = f"{processes} × {batch}"
+        label = f"{processes} × {batch}" + (f" | {ran}" if side_by_side else "")
         if "skipped" in m:
             lines.append(f"| {strategy} | {label} | skipped: {m['skipped']} |" + " |" * 11)
             continue
@@ -193,6 +212,8 @@ def main(argv=None) -> int:
         parser.error(f"--warmup must not be negative, got {args.warmup}")
     if args.device not in ("auto", "cpu"):
         parser.error(f"--device must be auto or cpu, got {args.device!r}")
+    if args.side_by_side and args.device == "cpu":
+        parser.error("--side-by-side puts each run on a GPU of its own: not with --device cpu")
     if args.docs and not os.path.isfile(args.docs):
         parser.error(f"--docs {args.docs!r} is not a file")
     for config in args.configs:

@@ -249,6 +249,9 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
 
 
 def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_path, monkeypatch):
+    """Two stand-in GPUs (this machine's runs go to the CPU with --device auto): the one-GPU runs
+    overlap in time, each seeing one of the parent's visible GPUs; the baseline then runs alone,
+    and the 2-process run after it, on every GPU; the speed-ups are against the baseline alone."""
     import scaling_table
 
     scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
@@ -265,24 +268,63 @@ def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_
 
     monkeypatch.setattr(scaling_table, "available_gpus", lambda: 2)
     monkeypatch.setattr(scaling_table.subprocess, "run", recorded)
-    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,7")
     out = tmp_path / "runs"
-    argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "6", "--device", "cpu"]
+    argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "6", "--device", "auto"]
     assert scaling_table.main([*argv, "--warmup", "0", "--configs", "1x1", "1x2", "2x2", "--side-by-side"]) == 0
     runs = {os.path.basename(folder): (gpu, start, end) for folder, gpu, start, end in calls}
-    assert sorted(runs) == ["3dgs-1x1", "3dgs-1x2", "3dgs-2x2"]
+    assert sorted(runs) == ["3dgs-1x1", "3dgs-1x1-alone", "3dgs-1x2", "3dgs-2x2"]
     (gpu_a, start_a, end_a), (gpu_b, start_b, end_b) = runs["3dgs-1x1"], runs["3dgs-1x2"]
-    assert {gpu_a, gpu_b} == {"0", "1"}, "each one-GPU run sees a GPU of its own"
+    assert {gpu_a, gpu_b} == {"5", "7"}, "each one-GPU run sees one of the parent's GPUs"
     assert max(start_a, start_b) < min(end_a, end_b), "the one-GPU runs overlap in time"
+    gpu_alone, start_alone, end_alone = runs["3dgs-1x1-alone"]
     gpu_c, start_c, _ = runs["3dgs-2x2"]
-    assert gpu_c is None and start_c >= max(end_a, end_b), "the 2-process run comes after them, on every GPU"
+    assert gpu_alone == gpu_c == "5,7", "the baseline and the 2-process run see every GPU"
+    assert start_alone >= max(end_a, end_b) and start_c >= end_alone, "alone: after the others, one at a time"
     text = (out / "scaling.md").read_text()
-    assert "side by side" in text
-    assert [line.split("|")[2].strip() for line in text.splitlines() if line.startswith("| 3dgs |")] == [
-        "1 × 1",
-        "1 × 2",
-        "2 × 2",
-    ], "the table keeps the order of the configs"
+    assert "side by side" in text and "| run |" in text
+    rows = [line.split("|") for line in text.splitlines() if line.startswith("| 3dgs |")]
+    assert [(r[2].strip(), r[3].strip()) for r in rows] == [
+        ("1 × 1", "alone"),
+        ("1 × 1", "side by side"),
+        ("1 × 2", "side by side"),
+        ("2 × 2", "alone"),
+    ]
+    alone = json.loads((out / "3dgs-1x1-alone" / "metrics.json").read_text())
+    two = json.loads((out / "3dgs-2x2" / "metrics.json").read_text())
+    ratio = (6 / two["train_seconds"]) / (6 / alone["train_seconds"])
+    assert rows[0][7].strip() == "1.00×" and rows[3][7].strip() == f"{ratio:.2f}×"
+    with pytest.raises(SystemExit):
+        scaling_table.main([*argv[:-1], "cpu", "--side-by-side"])  # no GPUs to put the runs on
+
+
+def test_visible_share_by_hand(tmp_path, capsys):
+    """Two cameras at the origin, one looking along +z and one along -z, 10 x 10 pixels, focal 10:
+    which of four points each sees (in front, within the margin around the frame) worked out by hand."""
+    import visible_share
+
+    from cdcgs.io.views import View
+
+    K = torch.tensor([[10.0, 0.0, 5.0], [0.0, 10.0, 5.0], [0.0, 0.0, 1.0]])
+    back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))  # a half turn about y: looks along -z
+    views = [View("front", "", 10, 10, K, torch.eye(4)), View("back", "", 10, 10, K, back)]
+    # (0,0,1): centre of the front view; (0,0,-1): centre of the back one; (2,0,1): u = 25, far
+    # outside; (0.6,0,1): u = 11, outside the frame but inside a 15% margin (u < 11.5).
+    points = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [2.0, 0.0, 1.0], [0.6, 0.0, 1.0]])
+    masks = visible_share.visible_masks(points, views, margin=0.15)
+    assert masks.tolist() == [[True, False, False, True], [False, True, False, False]]
+    assert visible_share.visible_masks(points, views, margin=0.0)[0].tolist() == [True, False, False, False]
+    generator = torch.Generator().manual_seed(0)
+    assert visible_share.union_share(masks, 2, 5, generator) == 0.75  # both views: 3 of 4 points
+    assert visible_share.union_share(masks, 1, 400, generator) == pytest.approx(0.375, abs=0.05)
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
+    out = tmp_path / "share.json"
+    assert visible_share.main(["--data", str(scene), "--batch", "2", "--samples", "50", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["per_view"]["min"] <= report["per_view"]["mean"] <= report["union"]["2"] <= 1.0
+    assert "random views see" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        visible_share.main(["--data", str(scene), "--batch", "99"])
 
 
 def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
