@@ -208,7 +208,11 @@ def test_view_stops_on_sigint_even_when_started_with_it_ignored(trained):
     for stop in (signal.SIGINT, signal.SIGTERM):
         viewer = Command("view", str(run), "--port", "0", "--device", DEVICE, ignore_sigint=True)
         try:
-            viewer.wait_for("Ctrl-C to stop", 120)
+            try:
+                viewer.wait_for("Ctrl-C to stop", 120)
+            except AssertionError:  # its message holds the output so far; the stack dump comes with interrupt()
+                viewer.interrupt()
+                raise AssertionError(f"the viewer did not start:\n{''.join(viewer.output)}") from None
             viewer.process.send_signal(stop)
             viewer.process.wait(timeout=30)
         except subprocess.TimeoutExpired:

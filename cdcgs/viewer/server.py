@@ -160,15 +160,16 @@ class Viewer:
 
 
 def serve(viewer: Viewer) -> None:
-    """Start ``viewer``, say where it is, and serve until Ctrl-C."""
-    url = viewer.start()
-    print(f"cdcgs view: {viewer.viewable.snapshot.num:,} Gaussians at {url} (Ctrl-C to stop)", flush=True)
-    if viewer.settings.host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"cdcgs view: listening on {viewer.settings.host}: other machines can open it", flush=True)
-    for note in viewer.viewable.notes:
-        print(f"cdcgs view: {note}", flush=True)
+    """Start ``viewer``, say where it is, and serve until Ctrl-C (SIGINT) or SIGTERM. The handlers
+    are in place before the address is printed: a signal sent as soon as it appears stops cleanly."""
     with _stop_on_signals():
         try:
+            url = viewer.start()
+            print(f"cdcgs view: {viewer.viewable.snapshot.num:,} Gaussians at {url} (Ctrl-C to stop)", flush=True)
+            if viewer.settings.host not in ("127.0.0.1", "localhost", "::1"):
+                print(f"cdcgs view: listening on {viewer.settings.host}: other machines can open it", flush=True)
+            for note in viewer.viewable.notes:
+                print(f"cdcgs view: {note}", flush=True)
             while True:
                 time.sleep(3600)
         except KeyboardInterrupt:
