@@ -169,7 +169,10 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
         "| LPIPS-Alex | Gaussians | peak GB / GPU | all-reduce | wait |",
         f"|---|---{run_rule}|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    first: dict[str, float] = {}
+    first: dict[str, float] = {}  # the speed-ups' baseline: a strategy's first finished run alone
+    for (strategy, _, ran), m in rows.items():
+        if "skipped" not in m and ran == "alone":
+            first.setdefault(strategy, m["iterations"] / m["train_seconds"])
     for (strategy, config, ran), m in rows.items():
         processes, batch = parse_config(config)
         label = f"{processes} × {batch}" + (f" | {ran}" if side_by_side else "")
@@ -178,14 +181,14 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
             continue
         test = m.get("test", {})
         rate = m["iterations"] / m["train_seconds"]
-        first.setdefault(strategy, rate)
+        speedup = f"{rate / first[strategy]:.2f}×" if strategy in first else "—"
         peaks = [p for p in m.get("peak_gpu_memory_gb_per_process") or [m.get("peak_gpu_memory_gb")] if p is not None]
         comm = m.get("communication") or {}
         share = f"{comm['share'] * 100:.0f}% ({comm['all_reduce_ms_per_step']:.2f} ms)" if "share" in comm else "—"
         wait = f"{comm['wait_share'] * 100:.0f}% ({comm['wait_ms_per_step']:.2f} ms)" if "wait_share" in comm else "—"
         lines.append(
             f"| {strategy} | {label} | {-(-m['iterations'] // batch):,} | {m['train_seconds']:.1f} s | {rate:.1f} "
-            f"| {rate / first[strategy]:.2f}× | {_number(test.get('psnr'), 2)} | {_number(test.get('ssim'), 4)} "
+            f"| {speedup} | {_number(test.get('psnr'), 2)} | {_number(test.get('ssim'), 4)} "
             f"| {_number(test.get('lpips_vgg'), 4)} | {_number(test.get('lpips_alex'), 4)} | {m['num_gaussians']:,} "
             f"| {_number(max(peaks), 2) if peaks else '—'} | {share} | {wait} |"
         )

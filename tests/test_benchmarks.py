@@ -298,6 +298,28 @@ def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_
         scaling_table.main([*argv[:-1], "cpu", "--side-by-side"])  # no GPUs to put the runs on
 
 
+def test_scaling_table_takes_speed_ups_only_against_a_run_alone():
+    """Side by side, a strategy whose baseline alone is missing (its first config skipped) gets no
+    speed-up, not one against a run that shared the host; runs alone give the baseline."""
+    import scaling_table
+
+    args = argparse.Namespace(data="scene", images="images", iters=100)
+
+    def run(seconds):
+        return {"iterations": 100, "train_seconds": seconds, "num_gaussians": 10, "test": {}}
+
+    rows = {
+        ("a", "2x2", "alone"): {"skipped": "needs 2 GPUs"},
+        ("a", "1x1", "side by side"): run(10.0),
+        ("b", "1x1", "alone"): run(10.0),
+        ("b", "1x1", "side by side"): run(12.5),
+        ("b", "2x2", "alone"): run(6.25),
+    }
+    text = scaling_table.table(rows, "a machine", args, side_by_side=True)
+    speedups = [line.split("|")[7].strip() for line in text.splitlines() if line.startswith(("| a | 1", "| b |"))]
+    assert speedups == ["—", "1.00×", "0.80×", "1.60×"]
+
+
 def test_visible_share_by_hand(tmp_path, capsys):
     """Two cameras at the origin, one looking along +z and one along -z, 10 x 10 pixels, focal 10:
     which of four points each sees (in front, within the margin around the frame) worked out by hand."""
