@@ -894,9 +894,9 @@ class Trainer:
             self._peak_memory("train")  # (an evaluation takes it first)
         metrics = self._evaluate(final=True) if self.scene.test else {"views": 0}
         cuda = self.device.type == "cuda"
-        peaks = self.ranks.all_gather_object(self.peak_memory["train"] / 1e9 if cuda else None)
         held = held_memory(self.device, self.peak_reserved)
-        helds = self.ranks.all_gather_object(held)
+        # every process's peak and held memory, in one exchange
+        peaks, helds = zip(*self.ranks.all_gather_object((self.peak_memory["train"] / 1e9 if cuda else None, held)))
         result = {
             "test": {k: v for k, v in metrics.items() if k != "per_view"},
             "per_view": metrics.get("per_view", []),
@@ -912,8 +912,8 @@ class Trainer:
             "strategy": self.strategy.config(),
             "batch_size": self.config.batch_size,
             "processes": self.ranks.world,
-            "peak_gpu_memory_gb_per_process": peaks,
-            "held_gpu_memory_per_process": helds,
+            "peak_gpu_memory_gb_per_process": list(peaks),
+            "held_gpu_memory_per_process": list(helds),
         }
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
