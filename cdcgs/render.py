@@ -130,7 +130,10 @@ class RasterizeInfo:
             grad = self.means2d.grad
             if grad is None:
                 raise RuntimeError("call info.means2d.retain_grad() before backward() to read the positional gradient")
-        scale = grad.new_tensor([0.5 * self.width, 0.5 * self.height])
+        # Filled on the device: a tensor made from a host list is a blocking copy, and the host
+        # would wait for the GPU at every view that accumulates statistics.
+        scale = grad.new_empty(2)
+        scale[0], scale[1] = 0.5 * self.width, 0.5 * self.height
         return (grad * scale).norm(dim=-1)
 
 
