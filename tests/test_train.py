@@ -71,6 +71,14 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
     else:
         assert [metrics[key] for key in held] == [None, None, None]
     assert metrics["held_gpu_memory_per_process"] == [{key: metrics[key] for key in held}]
+    timeline = ("gpu_memory_reserved_gb", "gpu_memory_allocated_gb")
+    if device == "cuda":  # the allocator at every log point and after every evaluation
+        assert [e["step"] for e in history["gpu_memory"]] == history["step"]
+        for entry in history["gpu_memory"] + history["eval"]:
+            assert entry["gpu_memory_reserved_gb"] >= entry["gpu_memory_allocated_gb"] > 0
+        assert max(e["gpu_memory_reserved_gb"] for e in history["gpu_memory"]) <= reserved
+    else:
+        assert "gpu_memory" not in history and not any(key in e for e in history["eval"] for key in timeline)
 
 
 def test_held_memory_asks_warp_for_an_indexed_device(monkeypatch):
@@ -99,6 +107,20 @@ def test_held_memory_asks_warp_for_an_indexed_device(monkeypatch):
     assert held == {"peak_gpu_memory_reserved_gb": 5.0, "warp_mempool_peak_gb": 3.0, "gpu_memory_in_use_gb": 10.0}
     held_memory(torch.device("cuda", 0), 0)
     assert asked[-1] == torch.device("cuda", 0)
+
+
+def test_allocator_now_reads_torchs_counters_on_cuda_only(monkeypatch):
+    """Stand-ins for torch's CUDA counters, so this runs on the CPU: bytes become GB, and the CPU
+    gives nothing (the history then has no memory timeline)."""
+    from cdcgs.train.trainer import allocator_now
+
+    asked = []
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device: asked.append(device) or 7_500_000_000)
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device: asked.append(device) or 2_250_000_000)
+    assert allocator_now(torch.device("cpu")) == {} and asked == []
+    now = allocator_now(torch.device("cuda", 1))
+    assert now == {"gpu_memory_reserved_gb": 7.5, "gpu_memory_allocated_gb": 2.25}
+    assert asked == [torch.device("cuda", 1)] * 2
 
 
 def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):

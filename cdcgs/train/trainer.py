@@ -145,6 +145,19 @@ def held_memory(device: torch.device, peak_reserved: int) -> dict:
     }
 
 
+def allocator_now(device: torch.device) -> dict:
+    """torch's caching allocator at this moment on a CUDA ``device``: ``gpu_memory_reserved_gb``
+    (what it holds, freed blocks kept for reuse included) and ``gpu_memory_allocated_gb`` (its
+    live tensors); empty on the CPU. Host counters: no synchronisation. The history's
+    ``gpu_memory`` timeline and its evaluations carry them, to show when the cache grows."""
+    if device.type != "cuda":
+        return {}
+    return {
+        "gpu_memory_reserved_gb": torch.cuda.memory_reserved(device) / 1e9,
+        "gpu_memory_allocated_gb": torch.cuda.memory_allocated(device) / 1e9,
+    }
+
+
 def mean_communication(summaries: list[dict], backend: str | None) -> dict:
     """metrics.json's ``communication``: the processes' timings (:meth:`Trainer._communication_summary`)
     averaged, with the shares of the timed step, the all-reduce's rate, and each process's own."""
@@ -534,7 +547,7 @@ class Trainer:
         )
         self._peak_memory("eval")
         summary = {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_vgg", "lpips_alex", "num_gaussians")}
-        self.history["eval"].append({"step": self.step, **summary})
+        self.history["eval"].append({"step": self.step, **summary, **allocator_now(self.device)})
         return metrics
 
     # -------------------------------------------------------------------------------- loop
@@ -866,6 +879,9 @@ class Trainer:
             if logged:
                 for key, value in (("step", step), ("loss", loss), ("psnr", psnr_value), ("gaussians", self.model.num)):
                     self.history[key].append(value)
+                memory = allocator_now(self.device)
+                if memory:  # a run resumed from an older checkpoint starts the timeline there
+                    self.history.setdefault("gpu_memory", []).append({"step": step, **memory})
             bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr_value:.2f}", gaussians=self.model.num, refresh=False)
             if report and self.ranks.is_main:
                 print(
