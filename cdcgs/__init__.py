@@ -6,7 +6,15 @@ they can be launched from any Warp program. Importing cdcgs initialises nothing:
 starts on the first render.
 """
 
-__all__ = ["PreparedCamera", "RasterizeInfo", "bin_view", "prepare_camera", "rasterize"]
+__all__ = [
+    "PendingBins",
+    "PreparedCamera",
+    "RasterizeInfo",
+    "bin_view",
+    "prepare_camera",
+    "rasterize",
+    "start_bin_view",
+]
 __version__ = "0.1.0"
 
 

@@ -267,7 +267,11 @@ def complexity_over_views(
 ) -> torch.Tensor:
     """[N] Γ over every view of ``maps``: ``bins(i)`` is the :class:`cdcgs.render.RasterizeInfo`
     of view ``i``'s projection and tile lists (:func:`cdcgs.render.bin_view`, which skips the
-    colours and the blend that Γ does not read, or a render's info).
+    colours and the blend that Γ does not read, or a render's info), or a
+    :class:`cdcgs.render.PendingBins` that gives it (:func:`cdcgs.render.start_bin_view`). The
+    next view's ``bins`` is called before this view's is finished and measured, so that with
+    pending bins the GPU projects and counts the next view while the host waits for this one's
+    intersection count (the same Γ either way: the views are measured in the same order).
 
     ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
     ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
@@ -277,10 +281,14 @@ def complexity_over_views(
     accumulator = ViewComplexity(num_gaussians, device, **options)
     seed = accumulator.views_added
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
-    for index in range(rank, len(maps), world):
-        info = bins(index)
+    indices = list(range(rank, len(maps), world))
+    pending = bins(indices[0]) if indices else None
+    for position, index in enumerate(indices):
+        following = bins(indices[position + 1]) if position + 1 < len(indices) else None
+        info = pending.finish() if hasattr(pending, "finish") else pending
         accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
         accumulator.add(info, maps[index])
+        pending = following
     if world > 1:
         if accumulator.view_aggregation == "max":
             ranks.all_reduce_(accumulator.total, "max")

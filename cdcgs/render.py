@@ -24,7 +24,7 @@ from ._interop import wp_array as _wp
 from .errors import NonFiniteError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
-from .kernels.binning import TileBins, bin_gaussians
+from .kernels.binning import BinningStart, TileBins, bin_gaussians, finish_binning, start_binning
 from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .kernels.projection import (
     Camera,
@@ -35,7 +35,15 @@ from .kernels.projection import (
     sh_to_color_kernel,
 )
 
-__all__ = ["PreparedCamera", "RasterizeInfo", "bin_view", "prepare_camera", "rasterize"]
+__all__ = [
+    "PendingBins",
+    "PreparedCamera",
+    "RasterizeInfo",
+    "bin_view",
+    "prepare_camera",
+    "rasterize",
+    "start_bin_view",
+]
 
 
 @dataclass
@@ -174,6 +182,23 @@ def _bin(means2d, radii, depths, conics, opacities, width: int, height: int, rea
         allocate=allocate,
         zeros=zeros,
         read_count=read_count,
+        conics=_wp(conics.detach(), wp.vec3),
+        opacities=_wp(opacities.detach(), wp.float32),
+        launch=_launch,
+    )
+
+
+def _start_bin(means2d, radii, depths, conics, opacities, width: int, height: int) -> BinningStart:
+    """:func:`_bin`'s first half, up to the prefix sum of the tile counts (nothing read back)."""
+    allocate, zeros = _torch_allocators(means2d.device)
+    return start_binning(
+        _wp(means2d.detach(), wp.vec2),
+        _wp(radii, wp.vec2i),
+        _wp(depths.detach(), wp.float32),
+        width,
+        height,
+        allocate=allocate,
+        zeros=zeros,
         conics=_wp(conics.detach(), wp.vec3),
         opacities=_wp(opacities.detach(), wp.float32),
         launch=_launch,
@@ -714,6 +739,88 @@ def _info(width, height, projection, bins, colors, last, transmittance, depth, a
     )
 
 
+class PendingBins:
+    """A view's projection and the first half of its binning, queued on the device, with the
+    intersection count and the finiteness flags on their way to the host (on CUDA an
+    asynchronous copy into pinned memory and an event). :meth:`finish` waits for that copy alone,
+    not for the work queued after it, and queues the rest. Made by :func:`start_bin_view`.
+
+    A loop over views that starts view ``i + 1`` before it finishes view ``i`` keeps the GPU busy
+    while the host waits for a count and then queues the sort: what CDC-GS's Γ pass does
+    (:func:`cdcgs.complexity.complexity_over_views`).
+    """
+
+    def __init__(self, camera: PreparedCamera, projection: tuple, start: BinningStart, nonfinite, names):
+        self._camera, self._projection, self._start, self._names = camera, projection, start, names
+        self._info: RasterizeInfo | None = None
+        values = torch.cat([nonfinite, _torch(start.offsets)[-1:]])
+        self._event = None
+        if values.device.type == "cuda":
+            self._values = values  # alive until the copy has read it
+            self._host = torch.empty(values.shape, dtype=values.dtype, pin_memory=True)
+            self._host.copy_(values, non_blocking=True)
+            self._event = torch.cuda.Event()
+            self._event.record(torch.cuda.current_stream(values.device))
+        else:
+            self._host = values
+
+    @torch.no_grad()
+    def finish(self) -> RasterizeInfo:
+        """The view's :class:`RasterizeInfo`, as :func:`bin_view` returns it (the same one on a
+        second call). Raises :class:`cdcgs.errors.NonFiniteError` naming a tensor with NaN or inf."""
+        if self._info is not None:
+            return self._info
+        if self._event is not None:
+            self._event.synchronize()  # the count alone: later work on the stream goes on
+        values = self._host.tolist()
+        for name, bad in zip(self._names, values[:-1]):
+            if bad:
+                raise NonFiniteError(name)
+        camera = self._camera
+        with _warp_scope(self._projection[0].device):
+            bins = finish_binning(self._start, values[-1])
+        self._info = _info(camera.width, camera.height, self._projection, bins, None, None, None, None, {})
+        self._start = self._values = None  # the first half's buffers are the info's now, or spent
+        return self._info
+
+
+@torch.no_grad()
+def start_bin_view(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    *,
+    camera: PreparedCamera,
+    antialiased: bool = False,
+) -> PendingBins:
+    """:func:`bin_view` in two halves: this queues the projection and the first half of the
+    binning and returns at once; ``.finish()`` on the result reads the intersection count and
+    returns the view's :class:`RasterizeInfo`. Same arguments and errors as :func:`bin_view` (the
+    non-finite ones from ``finish``)."""
+    means = _check_tensor("means", means, (None, 3), None)
+    device = means.device
+    n = means.shape[0]
+    if n == 0:
+        raise ValueError("means is empty: the scene has no Gaussians to render")
+    checked = {
+        "means": means,
+        "quats": _check_tensor("quats", quats, (n, 4), device),
+        "scales": _check_tensor("scales", scales, (n, 3), device),
+        "opacities": _check_tensor("opacities", opacities, (n,), device),
+    }
+    if not isinstance(camera, PreparedCamera):
+        raise ValueError(
+            f"camera must be a PreparedCamera (from cdcgs.render.prepare_camera), got {type(camera).__name__}"
+        )
+    with _warp_scope(device):
+        nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
+        projection = _project(*checked.values(), camera.camera, antialiased, nonfinite)
+        means2d, conics, depths, composited_opacities, radii = projection
+        start = _start_bin(means2d, radii, depths, conics, composited_opacities, camera.width, camera.height)
+        return PendingBins(camera, projection, start, nonfinite, list(checked))
+
+
 @torch.no_grad()
 def bin_view(
     means: torch.Tensor,
@@ -735,25 +842,4 @@ def bin_view(
         ValueError: as :func:`rasterize`: an argument of the wrong type, dtype, shape or device,
             non-finite values (naming the tensor), an empty scene, a camera that is not prepared.
     """
-    means = _check_tensor("means", means, (None, 3), None)
-    device = means.device
-    n = means.shape[0]
-    if n == 0:
-        raise ValueError("means is empty: the scene has no Gaussians to render")
-    checked = {
-        "means": means,
-        "quats": _check_tensor("quats", quats, (n, 4), device),
-        "scales": _check_tensor("scales", scales, (n, 3), device),
-        "opacities": _check_tensor("opacities", opacities, (n,), device),
-    }
-    if not isinstance(camera, PreparedCamera):
-        raise ValueError(
-            f"camera must be a PreparedCamera (from cdcgs.render.prepare_camera), got {type(camera).__name__}"
-        )
-    with _warp_scope(device):
-        nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
-        projection = _project(*checked.values(), camera.camera, antialiased, nonfinite)
-        means2d, conics, depths, composited_opacities, radii = projection
-        read_count = _count_reader(nonfinite, list(checked))
-        bins = _bin(means2d, radii, depths, conics, composited_opacities, camera.width, camera.height, read_count)
-    return _info(camera.width, camera.height, projection, bins, None, None, None, None, {})
+    return start_bin_view(means, quats, scales, opacities, camera=camera, antialiased=antialiased).finish()

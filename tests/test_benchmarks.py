@@ -144,7 +144,9 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
         parts_ms = sum(part["host_ms"] for part in row["parts"].values())
         assert parts_ms == pytest.approx(row["wall_ms_per_step"], rel=1e-6)
         assert row["complexity_pass"]["views"] == 2 and row["complexity_pass"]["wall_ms_per_view"] > 0
-    assert "| ms per step (wall) |" in capsys.readouterr().out
+        assert row["complexity_pass"]["wall_ms_per_view_one_at_a_time"] > 0
+    printed = capsys.readouterr().out
+    assert "| ms per step (wall) |" in printed and "| Γ pass: ms per view (wall), one view at a time |" in printed
     boxes = tmp_path / "boxes.json"
     assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0
     for exact, box in zip(rows, json.loads(boxes.read_text())["rows"]):

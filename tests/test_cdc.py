@@ -279,12 +279,12 @@ def test_the_gamma_pass_bins_the_gaussians_as_they_are_now(tiny_scene, tmp_path)
     def same(a, b):
         return all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("conics", "opacities", "sorted_gauss_ids"))
 
-    assert same(trainer._bins(1), fresh())
+    assert same(trainer._bins(1).finish(), fresh())
     with torch.no_grad():
         model.params["log_scales"].add_(0.3)  # what an optimizer step does
-    assert same(trainer._bins(1), fresh())
+    assert same(trainer._bins(1).finish(), fresh())
     model.params["opacity_logits"] = torch.nn.Parameter(model.params["opacity_logits"].detach() - 2.0)  # surgery
-    assert same(trainer._bins(1), fresh())
+    assert same(trainer._bins(1).finish(), fresh())
     other = Trainer(tiny_config(tiny_scene, tmp_path / "b", strategy="cdc", iters=2))
     other._setup()
-    assert not same(trainer._bins(1), other._bins(1)), "the changes above reached the lists"
+    assert not same(trainer._bins(1).finish(), other._bins(1).finish()), "the changes above reached the lists"

@@ -6,9 +6,16 @@ import torch
 from conftest import look_at, make_scene
 
 import cdcgs
-from cdcgs.complexity import ViewComplexity, complexity_map, gaussian_complexity, high_frequency, luma
+from cdcgs.complexity import (
+    ViewComplexity,
+    complexity_map,
+    complexity_over_views,
+    gaussian_complexity,
+    high_frequency,
+    luma,
+)
 from cdcgs.errors import NonFiniteError
-from cdcgs.render import bin_view, prepare_camera
+from cdcgs.render import bin_view, prepare_camera, start_bin_view
 
 
 def test_luma_uses_proper_rgb_weights():
@@ -137,6 +144,9 @@ def test_bin_view_refuses_what_rasterize_refuses():
     bad[5, 1] = float("nan")
     with pytest.raises(NonFiniteError, match="means"):
         bin_view(bad, quats, scales, opacities, camera=camera)
+    pending = start_bin_view(bad, quats, scales, opacities, camera=camera)  # queued: nothing read yet
+    with pytest.raises(NonFiniteError, match="means"):
+        pending.finish()
     with pytest.raises(ValueError, match="PreparedCamera"):
         bin_view(means, quats, scales, opacities, camera=scene.viewmat)
     with pytest.raises(ValueError, match="opacities"):
@@ -200,3 +210,37 @@ def test_max_over_views_is_taken_in_place_into_the_running_max(device, racy):
     torch.testing.assert_close(accumulator.result().cpu(), expected, atol=0, rtol=0)
     with pytest.raises(ValueError, match="max_into"):
         gaussian_complexity(lists, hf_map, max_into=torch.zeros(199, device=device))
+
+
+def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device):
+    """complexity_over_views with start_bin_view's pending lists: view i + 1 is started before
+    view i is finished (so that the GPU projects and counts it while the host waits for view i's
+    count), two views are outstanding at once, and Γ is bit for bit that of bin_view's finished
+    lists one view at a time."""
+    scene = make_scene(200, 40, 30, sh_degree=0, seed=6)
+    tensors = [t.to(device) for t in scene.tensors()[:4]]
+    eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5), (0.0, 1.2, -5.0)]
+    cameras = [prepare_camera(look_at(eye, (0.0, 0.0, 0.0)), scene.K, 40, 30) for eye in eyes]
+    g = torch.Generator().manual_seed(6)
+    maps = [(torch.rand(30, 40, generator=g) * 255).to(torch.uint8).to(device) for _ in eyes]
+    events = []
+
+    class Recorded:
+        def __init__(self, index):
+            events.append(("start", index))
+            self.index, self.pending = index, start_bin_view(*tensors, camera=cameras[index])
+
+        def finish(self):
+            events.append(("finish", self.index))
+            info = self.pending.finish()
+            assert self.pending.finish() is info  # a second call gives the same lists
+            return info
+
+    got = complexity_over_views(Recorded, maps, 200, device)
+    order = [("start", 0), ("start", 1), ("finish", 0), ("start", 2), ("finish", 1), ("start", 3), ("finish", 2)]
+    assert events == [*order, ("finish", 3)]
+    expected = complexity_over_views(lambda i: bin_view(*tensors, camera=cameras[i]), maps, 200, device)
+    assert (expected > 0).sum() > 50
+    torch.testing.assert_close(got, expected, atol=0, rtol=0)
+    views = [gaussian_complexity(bin_view(*tensors, camera=c), m, sums=False)[0].cpu() for c, m in zip(cameras, maps)]
+    torch.testing.assert_close(got.cpu(), torch.stack(views).amax(dim=0), atol=0, rtol=0)

@@ -25,12 +25,15 @@ from ._constants import TILE_SIZE
 from .projection import ALPHA_THRESHOLD
 
 __all__ = [
+    "BinningStart",
     "TileBins",
     "bin_gaussians",
     "count_tiles_kernel",
     "emit_keys_kernel",
+    "finish_binning",
     "gather_counts_kernel",
     "row_span",
+    "start_binning",
     "tile_ranges_kernel",
 ]
 
@@ -255,7 +258,28 @@ def _warp_empty(shape, dtype, device):
     return wp.empty(shape, dtype=dtype, device=device)
 
 
-def bin_gaussians(
+@dataclass
+class BinningStart:
+    """The first half of :func:`bin_gaussians`, queued up to the prefix sum of the tile counts:
+    what :func:`finish_binning` needs once the total intersection count, ``offsets[-1]``, has
+    been read on the host. Made by :func:`start_binning`."""
+
+    offsets: wp.array  # [N] int32, inclusive prefix sum of the tile counts in depth order
+    tile_counts: wp.array
+    tile_rects: wp.array
+    depth_order: wp.array
+    means2d: wp.array
+    conics: wp.array | None
+    opacities: wp.array | None
+    tiles_x: int
+    tiles_y: int
+    device: wp.Device
+    allocate: Callable
+    zeros: Callable
+    launch: Callable
+
+
+def start_binning(
     means2d: wp.array,
     radii: wp.array,
     depths: wp.array,
@@ -263,31 +287,15 @@ def bin_gaussians(
     height: int,
     allocate: Callable | None = None,
     zeros: Callable | None = None,
-    read_count: Callable | None = None,
     *,
     conics: wp.array | None = None,
     opacities: wp.array | None = None,
     launch: Callable | None = None,
-) -> TileBins:
-    """Bin projected Gaussians into TILE_SIZE x TILE_SIZE tiles and sort each tile's list by depth.
-
-    Args:
-        means2d: [N] vec2 pixel means; radii: [N] vec2i per-axis pixel radii (0 = culled);
-            depths: [N] float32 camera-space depths (> 0 for visible Gaussians).
-        width, height: image size in pixels.
-        conics, opacities: [N] vec3 and float32, as the blend reads them: given both, each
-            Gaussian goes only into the tiles where it reaches alpha 1/255 at a pixel centre
-            (the same image, fewer pairs); without them, into every tile of its rectangle.
-        allocate, zeros: optional ``(shape, dtype, device) -> wp.array`` allocators (the torch face
-            passes ones backed by torch's caching allocator); default ``wp.empty`` / ``wp.zeros``.
-        read_count: optional ``(offsets) -> int`` reading the total intersection count, the last
-            entry of ``offsets`` (an inclusive prefix sum of tile counts).
-        launch: optional stand-in for ``wp.launch`` with its arguments (the torch face passes one
-            that replays recorded launches); default ``wp.launch``.
-
-    The one host synchronisation of a render happens here: the intersection count must be known
-    on the host to size the sort buffers.
-    """
+) -> BinningStart:
+    """Queue the first half of :func:`bin_gaussians` (same arguments, less ``read_count``): the
+    tile counts, the depth order and their prefix sum. Nothing is read back, so a caller with
+    several views may queue the next view's first half before it reads this one's count
+    (:func:`cdcgs.render.start_bin_view`)."""
     device = means2d.device
     if (conics is None) != (opacities is None):
         raise ValueError("bin_gaussians: give both conics and opacities (exact footprints) or neither")
@@ -319,29 +327,104 @@ def bin_gaussians(
     launch(gather_counts_kernel, n, inputs=[tile_counts, depth_order], outputs=[ordered_counts], device=device)
     ordered_offsets = allocate((n,), wp.int32, device)
     wp.utils.array_scan(ordered_counts, ordered_offsets, inclusive=True)
-    if read_count is None:
-        total = int(ordered_offsets[n - 1 : n].numpy()[0])  # host sync: sizes the sort buffers
-    else:
-        total = int(read_count(ordered_offsets))
-    num_tiles = tiles_x * tiles_y
-    tile_ranges = zeros((num_tiles, 2), wp.int32, device)
-    keys = allocate((max(2 * total, 2),), wp.int32, device)
-    gauss_ids = allocate((max(2 * total, 2),), wp.int32, device)
+    return BinningStart(
+        offsets=ordered_offsets,
+        tile_counts=tile_counts,
+        tile_rects=tile_rects,
+        depth_order=depth_order,
+        means2d=means2d,
+        conics=conics,
+        opacities=opacities,
+        tiles_x=tiles_x,
+        tiles_y=tiles_y,
+        device=device,
+        allocate=allocate,
+        zeros=zeros,
+        launch=launch,
+    )
+
+
+def finish_binning(start: BinningStart, total: int) -> TileBins:
+    """The second half of :func:`bin_gaussians`: the (tile, Gaussian) pairs emitted in depth order
+    and sorted by tile, with ``total`` the intersection count, ``start.offsets[-1]``, read on the
+    host."""
+    n = start.offsets.shape[0]
+    device, launch = start.device, start.launch
+    exact = int(start.conics is not None)
+    num_tiles = start.tiles_x * start.tiles_y
+    tile_ranges = start.zeros((num_tiles, 2), wp.int32, device)
+    keys = start.allocate((max(2 * total, 2),), wp.int32, device)
+    gauss_ids = start.allocate((max(2 * total, 2),), wp.int32, device)
     if total > 0:
         launch(
             emit_keys_kernel,
             total,
-            inputs=[ordered_offsets, n, depth_order, tile_rects, means2d, conics, opacities, exact, tiles_x],
+            inputs=[
+                start.offsets,
+                n,
+                start.depth_order,
+                start.tile_rects,
+                start.means2d,
+                start.conics,
+                start.opacities,
+                exact,
+                start.tiles_x,
+            ],
             outputs=[keys, gauss_ids],
             device=device,
         )
         wp.utils.radix_sort_pairs(keys, gauss_ids, total, end_bit=max(int(num_tiles - 1).bit_length(), 1))
         launch(tile_ranges_kernel, total, inputs=[keys, total], outputs=[tile_ranges], device=device)
     return TileBins(
-        tiles_x=tiles_x,
-        tiles_y=tiles_y,
-        tile_counts=tile_counts,
+        tiles_x=start.tiles_x,
+        tiles_y=start.tiles_y,
+        tile_counts=start.tile_counts,
         num_intersections=total,
         sorted_gauss_ids=gauss_ids[:total] if total > 0 else gauss_ids[:0],
         tile_ranges=tile_ranges,
     )
+
+
+def bin_gaussians(
+    means2d: wp.array,
+    radii: wp.array,
+    depths: wp.array,
+    width: int,
+    height: int,
+    allocate: Callable | None = None,
+    zeros: Callable | None = None,
+    read_count: Callable | None = None,
+    *,
+    conics: wp.array | None = None,
+    opacities: wp.array | None = None,
+    launch: Callable | None = None,
+) -> TileBins:
+    """Bin projected Gaussians into TILE_SIZE x TILE_SIZE tiles and sort each tile's list by depth.
+
+    Args:
+        means2d: [N] vec2 pixel means; radii: [N] vec2i per-axis pixel radii (0 = culled);
+            depths: [N] float32 camera-space depths (> 0 for visible Gaussians).
+        width, height: image size in pixels.
+        conics, opacities: [N] vec3 and float32, as the blend reads them: given both, each
+            Gaussian goes only into the tiles where it reaches alpha 1/255 at a pixel centre
+            (the same image, fewer pairs); without them, into every tile of its rectangle.
+        allocate, zeros: optional ``(shape, dtype, device) -> wp.array`` allocators (the torch face
+            passes ones backed by torch's caching allocator); default ``wp.empty`` / ``wp.zeros``.
+        read_count: optional ``(offsets) -> int`` reading the total intersection count, the last
+            entry of ``offsets`` (an inclusive prefix sum of tile counts).
+        launch: optional stand-in for ``wp.launch`` with its arguments (the torch face passes one
+            that replays recorded launches); default ``wp.launch``.
+
+    The one host synchronisation of a render happens here: the intersection count must be known
+    on the host to size the sort buffers. :func:`start_binning` and :func:`finish_binning` are
+    the two halves around it.
+    """
+    start = start_binning(
+        means2d, radii, depths, width, height, allocate, zeros, conics=conics, opacities=opacities, launch=launch
+    )
+    n = start.offsets.shape[0]
+    if read_count is None:
+        total = int(start.offsets[n - 1 : n].numpy()[0])  # host sync: sizes the sort buffers
+    else:
+        total = int(read_count(start.offsets))
+    return finish_binning(start, total)

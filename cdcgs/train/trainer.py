@@ -20,7 +20,7 @@ from ..complexity import ComplexityMaps
 from ..errors import InputError, NonFiniteError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
-from ..render import bin_view, prepare_camera, rasterize
+from ..render import prepare_camera, rasterize, start_bin_view
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
@@ -404,7 +404,8 @@ class Trainer:
         )
 
     def _bins(self, view_index: int):
-        """The projection and tile lists of a training view, without colours or image (Γ passes).
+        """The projection and tile lists of a training view, without colours or image (Γ passes), as
+        a :class:`cdcgs.render.PendingBins` (its ``finish()`` gives them).
         A pass bins every training view of the same Gaussians: their scales and opacities are
         computed once for it, again only when a parameter has changed (another tensor, or an
         in-place update: torch's version counter; weak references, so that no old parameter is
@@ -417,7 +418,7 @@ class Trainer:
                 self._shape = {"scales": self.model.scales(), "opacities": self.model.opacities()}
             self._shape_key = [(weakref.ref(p), p._version) for p in params]
         means, quats = self.model.params["means"].detach(), self.model.params["quats"].detach()
-        return bin_view(
+        return start_bin_view(
             means, quats, **self._shape, camera=self.cameras[view_index], antialiased=self.config.antialiased
         )
 
