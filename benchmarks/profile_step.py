@@ -31,6 +31,7 @@ import argparse
 import contextlib
 import json
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -52,6 +53,8 @@ from cdcgs.train.ops import make_optimizer
 from cdcgs.train.trainer import Trainer
 
 # The parts of a step, in the order they run; each is a labelled range in the profile.
+PASS_REPEATS = 3  # passes of each way of the Γ pass, in turn
+
 PARTS = [
     "view and learning rate",
     "render forward",
@@ -216,7 +219,8 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
     """CDC-GS's Γ over ``views`` training views (what the full schedule runs over every view at each
     densification step): wall ms per view as the trainer runs it (the next view queued before this
     one's count is read) and one view at a time (``wall_ms_per_view_one_at_a_time``, each view's
-    lists finished before the next starts), and the profile of one pass."""
+    lists finished before the next starts), each the median of PASS_REPEATS passes taken in turn,
+    and the profile of one pass."""
     from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
@@ -226,16 +230,18 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     maps = ComplexityMaps(trainer.scene.train[:views], "dwt", device)
     maps.all()
-    complexity_over_views(trainer._bins, maps, trainer.model.num, device)  # warm-up
+    ways = {"pipelined": trainer._bins, "one at a time": lambda i: trainer._bins(i).finish()}
+    for bins in ways.values():  # warm-up
+        complexity_over_views(bins, maps, trainer.model.num, device)
     sync()
-    start = time.perf_counter()
-    complexity_over_views(trainer._bins, maps, trainer.model.num, device)
-    sync()
-    wall_ms = (time.perf_counter() - start) * 1e3 / views
-    start = time.perf_counter()
-    complexity_over_views(lambda i: trainer._bins(i).finish(), maps, trainer.model.num, device)
-    sync()
-    one_at_a_time_ms = (time.perf_counter() - start) * 1e3 / views
+    times: dict[str, list[float]] = {way: [] for way in ways}
+    for _ in range(PASS_REPEATS):  # the two ways in turn, so that neither gets the quieter moments
+        for way, bins in ways.items():
+            start = time.perf_counter()
+            complexity_over_views(bins, maps, trainer.model.num, device)
+            sync()
+            times[way].append((time.perf_counter() - start) * 1e3 / views)
+    wall_ms, one_at_a_time_ms = (statistics.median(times[way]) for way in ways)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     with profile(activities=activities) as prof:
         complexity_over_views(trainer._bins, maps, trainer.model.num, device)

@@ -268,10 +268,11 @@ def complexity_over_views(
     """[N] Γ over every view of ``maps``: ``bins(i)`` is the :class:`cdcgs.render.RasterizeInfo`
     of view ``i``'s projection and tile lists (:func:`cdcgs.render.bin_view`, which skips the
     colours and the blend that Γ does not read, or a render's info), or a
-    :class:`cdcgs.render.PendingBins` that gives it (:func:`cdcgs.render.start_bin_view`). The
-    next view's ``bins`` is called before this view's is finished and measured, so that with
-    pending bins the GPU projects and counts the next view while the host waits for this one's
-    intersection count (the same Γ either way: the views are measured in the same order).
+    :class:`cdcgs.render.PendingBins` that gives it (:func:`cdcgs.render.start_bin_view`). With
+    pending bins the next view is started before this one is finished and measured, so that the
+    GPU projects and counts it while the host waits for this one's intersection count (two views'
+    projections alive at once); with finished ones, one view at a time. The same Γ either way:
+    the views are measured in the same order.
 
     ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
     ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
@@ -282,13 +283,18 @@ def complexity_over_views(
     seed = accumulator.views_added
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     indices = list(range(rank, len(maps), world))
-    pending = bins(indices[0]) if indices else None
+
+    def started(position: int):
+        return bins(indices[position]) if position < len(indices) else None
+
+    current = started(0)
     for position, index in enumerate(indices):
-        following = bins(indices[position + 1]) if position + 1 < len(indices) else None
-        info = pending.finish() if hasattr(pending, "finish") else pending
+        pending = hasattr(current, "finish")
+        following = started(position + 1) if pending else None  # queued before this view's count is read
+        info = current.finish() if pending else current
         accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
         accumulator.add(info, maps[index])
-        pending = following
+        current = following if pending else started(position + 1)
     if world > 1:
         if accumulator.view_aggregation == "max":
             ranks.all_reduce_(accumulator.total, "max")

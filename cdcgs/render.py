@@ -8,6 +8,7 @@ once by whoever renders the same view again and again.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 
@@ -747,20 +748,22 @@ class PendingBins:
 
     A loop over views that starts view ``i + 1`` before it finishes view ``i`` keeps the GPU busy
     while the host waits for a count and then queues the sort: what CDC-GS's Γ pass does
-    (:func:`cdcgs.complexity.complexity_over_views`).
+    (:func:`cdcgs.complexity.complexity_over_views`). The second half runs on the CUDA stream that
+    was current at the start, whichever is current at ``finish``.
     """
 
     def __init__(self, camera: PreparedCamera, projection: tuple, start: BinningStart, nonfinite, names):
         self._camera, self._projection, self._start, self._names = camera, projection, start, names
         self._info: RasterizeInfo | None = None
         values = torch.cat([nonfinite, _torch(start.offsets)[-1:]])
-        self._event = None
+        self._event = self._stream = None
         if values.device.type == "cuda":
+            self._stream = torch.cuda.current_stream(values.device)  # the first half's, and Warp's
             self._values = values  # alive until the copy has read it
             self._host = torch.empty(values.shape, dtype=values.dtype, pin_memory=True)
             self._host.copy_(values, non_blocking=True)
             self._event = torch.cuda.Event()
-            self._event.record(torch.cuda.current_stream(values.device))
+            self._event.record(self._stream)
         else:
             self._host = values
 
@@ -777,7 +780,8 @@ class PendingBins:
             if bad:
                 raise NonFiniteError(name)
         camera = self._camera
-        with _warp_scope(self._projection[0].device):
+        stream = contextlib.nullcontext() if self._stream is None else torch.cuda.stream(self._stream)
+        with stream, _warp_scope(self._projection[0].device):
             bins = finish_binning(self._start, values[-1])
         self._info = _info(camera.width, camera.height, self._projection, bins, None, None, None, None, {})
         self._start = self._values = None  # the first half's buffers are the info's now, or spent

@@ -212,23 +212,65 @@ def test_max_over_views_is_taken_in_place_into_the_running_max(device, racy):
         gaussian_complexity(lists, hf_map, max_into=torch.zeros(199, device=device))
 
 
-def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device):
+class _Rank:
+    """Process ``rank`` of ``world`` whose reductions change nothing: its own share of the views."""
+
+    def __init__(self, rank: int, world: int):
+        self.rank, self.world = rank, world
+
+    def all_reduce_(self, tensor, op="sum"):
+        return tensor
+
+
+class _Maps(list):
+    """Complexity maps that note when each is read (``add`` reads its view's map)."""
+
+    def __init__(self, maps, events):
+        super().__init__(maps)
+        self.events = events
+
+    def __getitem__(self, index):
+        self.events.append(("map", index))
+        return super().__getitem__(index)
+
+
+@pytest.mark.parametrize(
+    "options, ranks",
+    [
+        ({}, None),
+        ({"pixel_aggregation": "mean", "view_aggregation": "mean"}, None),
+        ({"pixel_aggregation": "max", "view_aggregation": "mean"}, (1, 2)),
+        ({"racy_max": True, "racy_seed": 7}, None),
+        ({"racy_max": True, "racy_seed": 7}, (0, 2)),
+    ],
+)
+def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device, options, ranks):
     """complexity_over_views with start_bin_view's pending lists: view i + 1 is started before
-    view i is finished (so that the GPU projects and counts it while the host waits for view i's
-    count), two views are outstanding at once, and Γ is bit for bit that of bin_view's finished
-    lists one view at a time."""
+    view i is finished and measured (so that the GPU projects and counts it while the host waits
+    for view i's count); with finished lists, one view at a time. Γ is that of the loop before
+    the change (bin_view, then add, each view seeded with its own index), bit for bit but for the
+    sums' atomic adds on CUDA, for each aggregation, the racy emulation and a rank's share."""
     scene = make_scene(200, 40, 30, sh_degree=0, seed=6)
     tensors = [t.to(device) for t in scene.tensors()[:4]]
-    eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5), (0.0, 1.2, -5.0)]
+    eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5), (0.0, 1.2, -5.0), (-0.8, 0.5, -4.8)]
     cameras = [prepare_camera(look_at(eye, (0.0, 0.0, 0.0)), scene.K, 40, 30) for eye in eyes]
     g = torch.Generator().manual_seed(6)
     maps = [(torch.rand(30, 40, generator=g) * 255).to(torch.uint8).to(device) for _ in eyes]
+    rank, world = ranks or (0, 1)
+    mine = list(range(rank, len(eyes), world))
+    stub = _Rank(rank, world) if ranks else None
     events = []
 
     class Recorded:
         def __init__(self, index):
             events.append(("start", index))
-            self.index, self.pending = index, start_bin_view(*tensors, camera=cameras[index])
+            if device == "cuda":  # queued without a blocking copy or a read of the device
+                torch.cuda.set_sync_debug_mode("error")
+            try:
+                self.index, self.pending = index, start_bin_view(*tensors, camera=cameras[index])
+            finally:
+                if device == "cuda":
+                    torch.cuda.set_sync_debug_mode("default")
 
         def finish(self):
             events.append(("finish", self.index))
@@ -236,11 +278,33 @@ def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device)
             assert self.pending.finish() is info  # a second call gives the same lists
             return info
 
-    got = complexity_over_views(Recorded, maps, 200, device)
-    order = [("start", 0), ("start", 1), ("finish", 0), ("start", 2), ("finish", 1), ("start", 3), ("finish", 2)]
-    assert events == [*order, ("finish", 3)]
-    expected = complexity_over_views(lambda i: bin_view(*tensors, camera=cameras[i]), maps, 200, device)
-    assert (expected > 0).sum() > 50
-    torch.testing.assert_close(got, expected, atol=0, rtol=0)
-    views = [gaussian_complexity(bin_view(*tensors, camera=c), m, sums=False)[0].cpu() for c, m in zip(cameras, maps)]
-    torch.testing.assert_close(got.cpu(), torch.stack(views).amax(dim=0), atol=0, rtol=0)
+    got = complexity_over_views(Recorded, _Maps(maps, events), 200, device, ranks=stub, **options)
+    expected_order = [("start", mine[0])]
+    for position, index in enumerate(mine):
+        if position + 1 < len(mine):
+            expected_order.append(("start", mine[position + 1]))
+        expected_order += [("finish", index), ("map", index)]
+    assert events == expected_order
+
+    events.clear()
+
+    def finished(index):
+        events.append(("bins", index))
+        return bin_view(*tensors, camera=cameras[index])
+
+    one_at_a_time = complexity_over_views(finished, _Maps(maps, events), 200, device, ranks=stub, **options)
+    assert events == [event for index in mine for event in (("bins", index), ("map", index))]
+
+    # The loop before the change, written out.
+    seed = options.get("racy_seed", 0)
+    accumulator = ViewComplexity(200, device, **options)
+    for index in mine:
+        info = bin_view(*tensors, camera=cameras[index])
+        accumulator.views_added = seed + index
+        accumulator.add(info, maps[index])
+    expected = accumulator.result()
+    assert (expected > 0).sum() > 30
+    sums = options.get("pixel_aggregation") == "mean" or options.get("view_aggregation") == "mean"
+    rtol = 1e-5 if sums and device == "cuda" else 0
+    torch.testing.assert_close(got, expected, atol=0, rtol=rtol)
+    torch.testing.assert_close(one_at_a_time, expected, atol=0, rtol=rtol)

@@ -48,9 +48,8 @@ class StepContext:
     extent: float
     generator: torch.Generator  # on the model's device: every random draw of a strategy uses it
     render: Callable | None = None  # render(view_index) -> (image, alpha, info) of a training view
-    bins: Callable | None = (
-        None  # bins(view_index) -> PendingBins of a training view's tile lists (no image); .finish() gives its RasterizeInfo
-    )
+    # bins(view_index) -> PendingBins of a training view's tile lists (no image); .finish() gives its RasterizeInfo
+    bins: Callable | None = None
     views: list | None = None  # the training views (with their images)
     complexity_maps: Any = None  # cdcgs.complexity.ComplexityMaps of the training views, owned by the run
     ranks: Any = None  # cdcgs.train.distributed.Ranks of a run on several processes (None: one process)

@@ -151,7 +151,7 @@ class Complexity:
     def compute(self, snapshot: Snapshot, antialiased: bool = False) -> torch.Tensor:
         """[N] Γ in [0, 1] of every Gaussian of ``snapshot``; 0 where none of its pixels is seen."""
         from ..complexity import complexity_over_views
-        from ..render import bin_view, prepare_camera
+        from ..render import prepare_camera, start_bin_view
 
         if self.unavailable:
             raise RuntimeError(f"complexity is not available: {self.unavailable}")
@@ -161,7 +161,7 @@ class Complexity:
         def bins(index: int):
             view = self.views[index]
             camera = prepare_camera(view.viewmat, view.K, view.width, view.height)
-            return bin_view(**shape, camera=camera, antialiased=antialiased)
+            return start_bin_view(**shape, camera=camera, antialiased=antialiased)
 
         return complexity_over_views(
             bins,
