@@ -3,9 +3,13 @@
     python benchmarks/training_table.py --data ../shared/data/bonsai --images images --out runs \
         [--runs 3dgs 3dgs-gsplat-rates cdc gsplat] [--iters 30000] [--docs docs/benchmarks.md]
 
-Each run is its own process, started after the one before it ended, so that none shares the GPU
-or the host; each is preceded by a 20-iteration run of the same command into a scratch folder,
-so that compiling kernels (Warp's, gsplat's JIT extension) stays out of the timed one. The runs:
+Each run is its own process, started after the one before it ended, so that none of them shares
+the GPU or the host with another; each is preceded by a 20-iteration run of the same command into
+a scratch folder, so that compiling kernels (Warp's, gsplat's JIT extension) stays out of the
+timed one. What else uses the GPU is not up to this script: during each timed run nvidia-smi
+counts the processes computing on its GPU every few seconds (``gpu_neighbours.json`` in the run's
+folder), and the table says which runs shared it (their times are not timings) or could not be
+checked (no nvidia-smi, or one that lists no process here). The runs:
 
 - ``3dgs``, ``cdc``, any other ``cdcgs train --strategy`` preset: ``cdcgs train`` with its defaults;
 - ``3dgs-gsplat-rates``: ``3dgs`` with gsplat's opacity learning rate and initial scales
@@ -38,6 +42,7 @@ ROOT = os.path.dirname(HERE)
 BEGIN, END = "<!-- training-table:begin -->", "<!-- training-table:end -->"
 GSPLAT_RATES = ["--lr-opacity-logits", "0.05", "--scale-rule", "3dgs"]
 DEFAULT_RUNS = ["3dgs", "3dgs-gsplat-rates", "cdc", "gsplat"]
+NEIGHBOURS = "gpu_neighbours.json"  # in a run's folder: what the watch saw of the other processes on its GPU
 
 
 def parse_run(run: str) -> tuple[str, list[str]]:
@@ -83,14 +88,64 @@ def gsplat_missing() -> str | None:
     return "; ".join(problems) if problems else None
 
 
+WATCH_EVERY = 5.0  # seconds between looks at the GPU during a timed run
+
+
+def visible_gpu() -> str:
+    """The GPU a one-GPU run uses, as nvidia-smi names it: the first of CUDA_VISIBLE_DEVICES (an
+    index or a UUID), else 0."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",")[0].strip()
+    return visible or "0"
+
+
+def gpu_process_count(gpu: str) -> int | None:
+    """How many processes compute on ``gpu`` now (nvidia-smi), or None where it cannot tell."""
+    try:
+        done = subprocess.run(
+            ["nvidia-smi", "--query-compute-apps=pid", "--format=csv,noheader", f"--id={gpu}"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if done.returncode != 0:
+        return None
+    return sum(1 for line in done.stdout.splitlines() if line.strip().isdigit())
+
+
+def run_watched(cmd: list[str], gpu: str, every: float = WATCH_EVERY, **kwargs) -> tuple[int, dict]:
+    """Run ``cmd`` (one process on ``gpu``) to its end, looking every ``every`` seconds at how many
+    processes compute on that GPU. Returns (exit status, what was seen): ``looks`` (those that saw
+    the run's own process there: at least one process) and ``most_others`` (the largest count
+    beyond it); ``most_others`` is None when no look saw the run (nvidia-smi missing, or blind to
+    this container's processes), so that sharing could not be checked."""
+    looks, most_others = 0, None
+    with subprocess.Popen(cmd, **kwargs) as process:
+        try:
+            while True:
+                try:
+                    status = process.wait(timeout=every)
+                    break
+                except subprocess.TimeoutExpired:
+                    pass
+                count = gpu_process_count(gpu)
+                if count:  # the run itself is there (a count of 0: not yet, or not visible)
+                    looks += 1
+                    most_others = max(most_others or 0, count - 1)
+        except BaseException:  # Ctrl-C, or a failed look: the run does not outlive the table
+            process.kill()
+            raise
+    return status, {"gpu": gpu, "looks": looks, "most_others": most_others}
+
+
 def train(run: str, args) -> dict:
     """Train one run (a warm-up first) and return its metrics.json, or {"skipped": why}."""
     folder = os.path.join(args.out, folder_name(run))
     metrics_path = os.path.join(folder, "metrics.json")
     if os.path.isfile(metrics_path) and not args.retrain:
         print(f"{run}: read the finished run in {folder}", flush=True)
-        with open(metrics_path) as f:
-            return json.load(f)
+        return read_run(folder)
     if parse_run(run)[0] == "gsplat":
         why = gsplat_missing()
         if why:
@@ -100,12 +155,28 @@ def train(run: str, args) -> dict:
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
     for iters, out in ((min(20, args.iters), scratch), (args.iters, folder)):
         print(f"{run}: {' '.join(command(run, args, out, iters)[1:])}", flush=True)
-        done = subprocess.run(command(run, args, out, iters), cwd=ROOT, env=environment)
-        if done.returncode != 0:
-            raise SystemExit(f"training_table: {run} failed (exit status {done.returncode}); see its output above")
+        if out == folder:  # the timed run: is it alone on its GPU?
+            status, seen = run_watched(command(run, args, out, iters), visible_gpu(), cwd=ROOT, env=environment)
+        else:
+            status = subprocess.run(command(run, args, out, iters), cwd=ROOT, env=environment).returncode
+        if status != 0:
+            raise SystemExit(f"training_table: {run} failed (exit status {status}); see its output above")
     shutil.rmtree(scratch, ignore_errors=True)
-    with open(metrics_path) as f:
-        return json.load(f)
+    with open(os.path.join(folder, NEIGHBOURS), "w") as f:
+        json.dump(seen, f)
+    return read_run(folder)
+
+
+def read_run(folder: str) -> dict:
+    """A finished run's metrics.json, with what the watch saw of its GPU (``neighbours``; absent
+    for a run trained before the watch existed)."""
+    with open(os.path.join(folder, "metrics.json")) as f:
+        metrics = json.load(f)
+    path = os.path.join(folder, NEIGHBOURS)
+    if os.path.isfile(path):
+        with open(path) as f:
+            metrics["neighbours"] = json.load(f)
+    return metrics
 
 
 def commit() -> str:
@@ -125,9 +196,18 @@ def table(rows: dict[str, dict], machine: str, iters: int, data: str, images: st
     """The markdown table of the runs, with what they ran on."""
     day = datetime.date.today().isoformat()
     scene = f"{os.path.basename(os.path.normpath(data))} `{images or 'images'}`"
+    trained = {run: m for run, m in rows.items() if "skipped" not in m}
+    shared = [run for run, m in trained.items() if (m.get("neighbours") or {}).get("most_others")]
+    unchecked = [run for run, m in trained.items() if (m.get("neighbours") or {}).get("most_others") is None]
+    how = f"one after another on {machine}"
+    if trained and not shared and not unchecked:
+        how += f", each alone on its GPU (nvidia-smi looked every {WATCH_EVERY:g} s)"
+    if shared:
+        how += f"; {', '.join(shared)} shared the GPU with other processes (marked †): their times are not timings"
+    if unchecked:
+        how += f"; not checked for other processes on the GPU: {', '.join(unchecked)}"
     lines = [
-        f"{scene}, {iters:,} iterations, each run alone on {machine}, one after another, {day}, commit {commit()}",
-        "(`python benchmarks/training_table.py`):",
+        f"{scene}, {iters:,} iterations, {how}, {day}, commit {commit()} (`python benchmarks/training_table.py`):",
         "",
         "| run | training time | it/s | test PSNR | SSIM | LPIPS-VGG | LPIPS-Alex | Gaussians | peak GPU memory |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -139,7 +219,7 @@ def table(rows: dict[str, dict], machine: str, iters: int, data: str, images: st
         test = m.get("test", {})
         memory = m.get("peak_gpu_memory_gb")
         lines.append(
-            f"| {run} | {m['train_seconds']:.1f} s | {m['iterations_per_second']:.1f} | {_number(test.get('psnr'), 2)} "
+            f"| {run}{' †' if run in shared else ''} | {m['train_seconds']:.1f} s | {m['iterations_per_second']:.1f} | {_number(test.get('psnr'), 2)} "
             f"| {_number(test.get('ssim'), 3)} | {_number(test.get('lpips_vgg'), 3)} | {_number(test.get('lpips_alex'), 3)} "
             f"| {m['num_gaussians']:,} | {_number(memory, 2) + ' GB' if memory is not None else '—'} |"
         )
@@ -148,7 +228,8 @@ def table(rows: dict[str, dict], machine: str, iters: int, data: str, images: st
         for run in rows:
             if run != "gsplat" and "train_seconds" in rows[run]:
                 ratio = rows[run]["train_seconds"] / peer["train_seconds"]
-                lines.append(f"\n`{run}` took {ratio:.2f}× gsplat's training time.")
+                caveat = " (not a timing: one of the two shared its GPU)" if {run, "gsplat"} & set(shared) else ""
+                lines.append(f"\n`{run}` took {ratio:.2f}× gsplat's training time{caveat}.")
     return "\n".join(lines) + "\n"
 
 

@@ -192,6 +192,59 @@ def test_host_overhead_reports_the_step_its_parts_and_the_profile(capsys):
     assert "cdcgs/train/trainer.py" in printed and "train_step" in printed, "the profile names the trainer's functions"
 
 
+def test_training_table_counts_the_processes_on_the_gpu_with_nvidia_smi(tmp_path, monkeypatch):
+    """gpu_process_count asks nvidia-smi for the compute processes of one GPU (an index or a UUID,
+    the first of CUDA_VISIBLE_DEVICES) and counts its lines; None where it is missing or fails."""
+    import training_table
+
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    script = fake / "nvidia-smi"
+    script.write_text('#!/bin/sh\necho "$@" > "${0%/*}/args"\nprintf "4242\\n777\\n"\n')
+    script.chmod(0o755)
+    monkeypatch.setenv("PATH", str(fake))
+    assert training_table.gpu_process_count("GPU-1234") == 2
+    assert "--query-compute-apps=pid" in (fake / "args").read_text() and "--id=GPU-1234" in (fake / "args").read_text()
+    script.write_text("#!/bin/sh\nexit 9\n")
+    assert training_table.gpu_process_count("0") is None
+    script.unlink()
+    assert training_table.gpu_process_count("0") is None
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", " 3,1")
+    assert training_table.visible_gpu() == "3"
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert training_table.visible_gpu() == "0"
+
+
+def test_training_table_says_which_runs_shared_their_gpu(monkeypatch):
+    """A timed run is watched while it lasts: the most processes seen beside it on its GPU, or
+    None when no look saw it there (not checked); the table marks the runs that shared their GPU
+    and does not call them alone, nor their ratio to gsplat a timing."""
+    import training_table
+
+    counts = iter([0, 1, 3, 1] + [1] * 10_000)  # starting (not there yet), alone, beside two others, alone
+    monkeypatch.setattr(training_table, "gpu_process_count", lambda gpu: next(counts))
+    status, seen = training_table.run_watched([sys.executable, "-c", "import time; time.sleep(1.0)"], "3", every=0.05)
+    assert status == 0 and seen["gpu"] == "3" and seen["looks"] >= 3 and seen["most_others"] == 2
+    monkeypatch.setattr(training_table, "gpu_process_count", lambda gpu: None)
+    status, seen = training_table.run_watched([sys.executable, "-c", "import sys; sys.exit(3)"], "0", every=0.05)
+    assert status == 3 and seen == {"gpu": "0", "looks": 0, "most_others": None}
+
+    base = {"train_seconds": 10.0, "iterations_per_second": 3.0, "test": {"psnr": 30.0}, "num_gaussians": 5}
+    rows = {name: {**base, "neighbours": {"most_others": 0}} for name in ("3dgs", "cdc", "gsplat")}
+    rows["cdc"]["neighbours"]["most_others"] = 2
+    text = training_table.table(rows, "an H100", 100, "bonsai", None)
+    assert "cdc shared the GPU with other processes (marked †): their times are not timings" in text
+    assert "| cdc † |" in text and "| 3dgs |" in text and "each alone on its GPU" not in text
+    assert "`3dgs` took 1.00× gsplat's training time.\n" in text
+    assert "`cdc` took 1.00× gsplat's training time (not a timing: one of the two shared its GPU)." in text
+    rows["cdc"]["neighbours"]["most_others"] = 0
+    text = training_table.table(rows, "an H100", 100, "bonsai", None)
+    assert "one after another on an H100, each alone on its GPU (nvidia-smi looked every 5 s)" in text
+    del rows["cdc"]["neighbours"]  # a run trained before the watch, or where it saw nothing
+    text = training_table.table(rows, "an H100", 100, "bonsai", None)
+    assert "not checked for other processes on the GPU: cdc" in text and "each alone" not in text
+
+
 def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs(tmp_path, capsys):
     import training_table
 
@@ -208,6 +261,7 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     row = next(line for line in text.splitlines() if line.startswith("| 3dgs |"))
     assert f"{metrics['num_gaussians']:,}" in row and f"{metrics['test']['psnr']:.2f}" in row
     assert "| gsplat | skipped:" in text, "no gsplat or no CUDA here: said, not hidden"
+    assert json.loads((out / "3dgs" / training_table.NEIGHBOURS).read_text())["gpu"] == training_table.visible_gpu()
     # A finished run is read, not trained again.
     assert training_table.main([*argv, "--runs", "3dgs"]) == 0
     assert "3dgs: read the finished run" in capsys.readouterr().out
