@@ -40,7 +40,17 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
-from training_table import _number, add_common_arguments, check_common_arguments, commit, write_docs
+from training_table import (
+    NEIGHBOURS,
+    _number,
+    add_common_arguments,
+    check_common_arguments,
+    commit,
+    gpu_sharing,
+    read_run,
+    run_watched,
+    write_docs,
+)
 
 BEGIN, END = "<!-- scaling-table:begin -->", "<!-- scaling-table:end -->"
 DEFAULT_CONFIGS = ["1x1", "1x2", "2x2", "4x4"]
@@ -90,8 +100,7 @@ def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool 
     metrics_path = os.path.join(folder, "metrics.json")
     if os.path.isfile(metrics_path) and not args.retrain:
         print(f"{name}: read the finished run in {folder}", flush=True)
-        with open(metrics_path) as f:
-            return json.load(f)
+        return read_run(folder)
     if args.device != "cpu" and processes > available_gpus():
         why = f"needs {processes} GPUs, this machine has {available_gpus()}"
         print(f"{name}: skipped ({why})", flush=True)
@@ -102,16 +111,28 @@ def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool 
         visible = os.environ.get("CUDA_VISIBLE_DEVICES")
         environment["CUDA_VISIBLE_DEVICES"] = visible.split(",")[gpu].strip() if visible else str(gpu)
     steps = [(args.warmup, scratch)] if args.warmup > 0 else []
+    seen = {"gpus": [], "looks": 0, "most_others": None}  # on the CPU: nothing to watch
     for iters, out in [*steps, (args.iters, folder)]:
         line = command(strategy, config, args, out, iters)
         where = f" (GPU {environment['CUDA_VISIBLE_DEVICES']})" if gpu is not None else ""
         print(f"{name}{where}: {' '.join(line[1:])}", flush=True)
-        done = subprocess.run(line, cwd=ROOT, env=environment)
-        if done.returncode != 0:
-            raise SystemExit(f"scaling_table: {name} failed (exit status {done.returncode}); see its output above")
+        if out == folder and args.device != "cpu":  # the timed run: is each of its GPUs its own?
+            status, seen = run_watched(line, run_gpus(environment, processes), cwd=ROOT, env=environment)
+        else:
+            status = subprocess.run(line, cwd=ROOT, env=environment).returncode
+        if status != 0:
+            raise SystemExit(f"scaling_table: {name} failed (exit status {status}); see its output above")
     shutil.rmtree(scratch, ignore_errors=True)
-    with open(metrics_path) as f:
-        return json.load(f)
+    with open(os.path.join(folder, NEIGHBOURS), "w") as f:
+        json.dump(seen, f)
+    return read_run(folder)
+
+
+def run_gpus(environment: dict, processes: int) -> list[str]:
+    """The GPUs (as nvidia-smi names them) of a run of ``processes`` processes, one GPU each: the
+    first of its CUDA_VISIBLE_DEVICES, or the first indices where that is not set."""
+    visible = [g.strip() for g in environment.get("CUDA_VISIBLE_DEVICES", "").split(",") if g.strip()]
+    return (visible or [str(i) for i in range(processes)])[:processes]
 
 
 Row = tuple[str, str, str]  # (strategy, config, how it ran: "alone" or "side by side")
@@ -154,15 +175,18 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
     first row (in side-by-side mode its first config alone)."""
     day = datetime.date.today().isoformat()
     scene = f"{os.path.basename(os.path.normpath(args.data))} `{args.images or 'images'}`"
+    twice = {(strategy, config) for strategy, config, ran in rows if ran == "side by side"}  # and alone
+    names = {row: f"{row[0]} {row[1]}" + (" alone" if row[:2] in twice and row[2] == "alone" else "") for row in rows}
+    shared, sharing = gpu_sharing({names[row]: m for row, m in rows.items() if "skipped" not in m})
     how = (
         f"on {machine}: the one-GPU runs side by side, each on a GPU of its own and sharing the host, except the "
         'baseline of the speed-ups ("alone"), and the others alone on the machine, one after another'
         if side_by_side
-        else f"each run alone on {machine}, one after another"
+        else f"one after another on {machine}"
     )
     run_header, run_rule = ("| run ", "|---") if side_by_side else ("", "")
     lines = [
-        f"{scene}, {args.iters:,} views seen per run, {how}, {day}, "
+        f"{scene}, {args.iters:,} views seen per run, {how}{sharing}, {day}, "
         f"commit {commit()} (`python benchmarks/scaling_table.py`):",
         "",
         f"| strategy | GPUs × batch {run_header}| steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG "
@@ -175,7 +199,8 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
             first.setdefault(strategy, m["iterations"] / m["train_seconds"])
     for (strategy, config, ran), m in rows.items():
         processes, batch = parse_config(config)
-        label = f"{processes} × {batch}" + (f" | {ran}" if side_by_side else "")
+        label = f"{processes} × {batch}" + (" †" if names[(strategy, config, ran)] in shared else "")
+        label += f" | {ran}" if side_by_side else ""
         if "skipped" in m:
             lines.append(f"| {strategy} | {label} | skipped: {m['skipped']} |" + " |" * 11)
             continue

@@ -114,12 +114,12 @@ def gpu_process_count(gpu: str) -> int | None:
     return sum(1 for line in done.stdout.splitlines() if line.strip().isdigit())
 
 
-def run_watched(cmd: list[str], gpu: str, every: float = WATCH_EVERY, **kwargs) -> tuple[int, dict]:
-    """Run ``cmd`` (one process on ``gpu``) to its end, looking every ``every`` seconds at how many
-    processes compute on that GPU. Returns (exit status, what was seen): ``looks`` (those that saw
-    the run's own process there: at least one process) and ``most_others`` (the largest count
-    beyond it); ``most_others`` is None when no look saw the run (nvidia-smi missing, or blind to
-    this container's processes), so that sharing could not be checked."""
+def run_watched(cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, **kwargs) -> tuple[int, dict]:
+    """Run ``cmd`` (one process on each of ``gpus``, as nvidia-smi names them) to its end, looking
+    every ``every`` seconds at how many processes compute on each. Returns (exit status, what was
+    seen): ``looks`` (those that saw the run's own process on a GPU: at least one process there)
+    and ``most_others`` (the largest count beyond it on any GPU); ``most_others`` is None when no
+    look saw the run (nvidia-smi missing, or blind to this container's processes): not checked."""
     looks, most_others = 0, None
     with subprocess.Popen(cmd, **kwargs) as process:
         try:
@@ -129,14 +129,30 @@ def run_watched(cmd: list[str], gpu: str, every: float = WATCH_EVERY, **kwargs) 
                     break
                 except subprocess.TimeoutExpired:
                     pass
-                count = gpu_process_count(gpu)
-                if count:  # the run itself is there (a count of 0: not yet, or not visible)
+                counts = [count for count in map(gpu_process_count, gpus) if count]  # 0: not there (yet)
+                if counts:
                     looks += 1
-                    most_others = max(most_others or 0, count - 1)
+                    most_others = max(most_others or 0, max(counts) - 1)
         except BaseException:  # Ctrl-C, or a failed look: the run does not outlive the table
             process.kill()
             raise
-    return status, {"gpu": gpu, "looks": looks, "most_others": most_others}
+    return status, {"gpus": list(gpus), "looks": looks, "most_others": most_others}
+
+
+def gpu_sharing(rows: dict[str, dict]) -> tuple[list[str], str]:
+    """(the runs that shared a GPU with other processes, words for a table's header about it) of
+    trained runs' metrics, each with what the watch saw (``neighbours``) or without (unchecked)."""
+    seen = {name: (m.get("neighbours") or {}).get("most_others") for name, m in rows.items()}
+    shared = [name for name, others in seen.items() if others]
+    unchecked = [name for name, others in seen.items() if others is None]
+    words = ""
+    if rows and not shared and not unchecked:
+        words = f", each alone on its GPU (nvidia-smi looked every {WATCH_EVERY:g} s)"
+    if shared:
+        words += f"; {', '.join(shared)} shared the GPU with other processes (marked †): their times are not timings"
+    if unchecked:
+        words += f"; not checked for other processes on the GPU: {', '.join(unchecked)}"
+    return shared, words
 
 
 def train(run: str, args) -> dict:
@@ -156,7 +172,7 @@ def train(run: str, args) -> dict:
     for iters, out in ((min(20, args.iters), scratch), (args.iters, folder)):
         print(f"{run}: {' '.join(command(run, args, out, iters)[1:])}", flush=True)
         if out == folder:  # the timed run: is it alone on its GPU?
-            status, seen = run_watched(command(run, args, out, iters), visible_gpu(), cwd=ROOT, env=environment)
+            status, seen = run_watched(command(run, args, out, iters), [visible_gpu()], cwd=ROOT, env=environment)
         else:
             status = subprocess.run(command(run, args, out, iters), cwd=ROOT, env=environment).returncode
         if status != 0:
@@ -197,15 +213,8 @@ def table(rows: dict[str, dict], machine: str, iters: int, data: str, images: st
     day = datetime.date.today().isoformat()
     scene = f"{os.path.basename(os.path.normpath(data))} `{images or 'images'}`"
     trained = {run: m for run, m in rows.items() if "skipped" not in m}
-    shared = [run for run, m in trained.items() if (m.get("neighbours") or {}).get("most_others")]
-    unchecked = [run for run, m in trained.items() if (m.get("neighbours") or {}).get("most_others") is None]
-    how = f"one after another on {machine}"
-    if trained and not shared and not unchecked:
-        how += f", each alone on its GPU (nvidia-smi looked every {WATCH_EVERY:g} s)"
-    if shared:
-        how += f"; {', '.join(shared)} shared the GPU with other processes (marked †): their times are not timings"
-    if unchecked:
-        how += f"; not checked for other processes on the GPU: {', '.join(unchecked)}"
+    shared, sharing = gpu_sharing(trained)
+    how = f"one after another on {machine}{sharing}"
     lines = [
         f"{scene}, {iters:,} iterations, {how}, {day}, commit {commit()} (`python benchmarks/training_table.py`):",
         "",

@@ -223,11 +223,18 @@ def test_training_table_says_which_runs_shared_their_gpu(monkeypatch):
 
     counts = iter([0, 1, 3, 1] + [1] * 10_000)  # starting (not there yet), alone, beside two others, alone
     monkeypatch.setattr(training_table, "gpu_process_count", lambda gpu: next(counts))
-    status, seen = training_table.run_watched([sys.executable, "-c", "import time; time.sleep(1.0)"], "3", every=0.05)
-    assert status == 0 and seen["gpu"] == "3" and seen["looks"] >= 3 and seen["most_others"] == 2
+    status, seen = training_table.run_watched([sys.executable, "-c", "import time; time.sleep(1.0)"], ["3"], every=0.05)
+    assert status == 0 and seen["gpus"] == ["3"] and seen["looks"] >= 3 and seen["most_others"] == 2
     monkeypatch.setattr(training_table, "gpu_process_count", lambda gpu: None)
-    status, seen = training_table.run_watched([sys.executable, "-c", "import sys; sys.exit(3)"], "0", every=0.05)
-    assert status == 3 and seen == {"gpu": "0", "looks": 0, "most_others": None}
+    status, seen = training_table.run_watched([sys.executable, "-c", "import sys; sys.exit(3)"], ["0"], every=0.05)
+    assert status == 3 and seen == {"gpus": ["0"], "looks": 0, "most_others": None}
+    # On several GPUs: the largest count beyond the run's own process on any of them.
+    counts = {"0": iter([1] * 10_000), "1": iter([0, 2] + [1] * 10_000)}
+    monkeypatch.setattr(training_table, "gpu_process_count", lambda gpu: next(counts[gpu]))
+    status, seen = training_table.run_watched(
+        [sys.executable, "-c", "import time; time.sleep(0.5)"], ["0", "1"], every=0.05
+    )
+    assert status == 0 and seen["most_others"] == 1 and seen["looks"] >= 2
 
     base = {"train_seconds": 10.0, "iterations_per_second": 3.0, "test": {"psnr": 30.0}, "num_gaussians": 5}
     rows = {name: {**base, "neighbours": {"most_others": 0}} for name in ("3dgs", "cdc", "gsplat")}
@@ -261,7 +268,7 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     row = next(line for line in text.splitlines() if line.startswith("| 3dgs |"))
     assert f"{metrics['num_gaussians']:,}" in row and f"{metrics['test']['psnr']:.2f}" in row
     assert "| gsplat | skipped:" in text, "no gsplat or no CUDA here: said, not hidden"
-    assert json.loads((out / "3dgs" / training_table.NEIGHBOURS).read_text())["gpu"] == training_table.visible_gpu()
+    assert json.loads((out / "3dgs" / training_table.NEIGHBOURS).read_text())["gpus"] == [training_table.visible_gpu()]
     # A finished run is read, not trained again.
     assert training_table.main([*argv, "--runs", "3dgs"]) == 0
     assert "3dgs: read the finished run" in capsys.readouterr().out
@@ -311,19 +318,19 @@ def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_
     import scaling_table
 
     scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
-    calls = []
-    real_run = subprocess.run
+    calls, watched_gpus = [], {}
+    real_watched = scaling_table.run_watched
 
-    def recorded(line, **kwargs):
+    def recorded(line, gpus, **kwargs):  # the timed runs, each watched on its GPUs
         start = time.monotonic()
-        done = real_run(line, **kwargs)
-        if "--out" in line:  # a training, not the commit lookup
-            out = line[line.index("--out") + 1]
-            calls.append((out, kwargs["env"].get("CUDA_VISIBLE_DEVICES"), start, time.monotonic()))
-        return done
+        status, seen = real_watched(line, gpus, **kwargs)
+        out = line[line.index("--out") + 1]
+        calls.append((out, kwargs["env"].get("CUDA_VISIBLE_DEVICES"), start, time.monotonic()))
+        watched_gpus[os.path.basename(out)] = gpus
+        return status, seen
 
     monkeypatch.setattr(scaling_table, "available_gpus", lambda: 2)
-    monkeypatch.setattr(scaling_table.subprocess, "run", recorded)
+    monkeypatch.setattr(scaling_table, "run_watched", recorded)
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,7")
     out = tmp_path / "runs"
     argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "6", "--device", "auto"]
@@ -336,6 +343,7 @@ def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_
     gpu_alone, start_alone, end_alone = runs["3dgs-1x1-alone"]
     gpu_c, start_c, _ = runs["3dgs-2x2"]
     assert gpu_alone == gpu_c == "5,7", "the baseline and the 2-process run see every GPU"
+    assert watched_gpus == {"3dgs-1x1": [gpu_a], "3dgs-1x2": [gpu_b], "3dgs-1x1-alone": ["5"], "3dgs-2x2": ["5", "7"]}
     assert start_alone >= max(end_a, end_b) and start_c >= end_alone, "alone: after the others, one at a time"
     text = (out / "scaling.md").read_text()
     assert "side by side" in text and "| run |" in text
@@ -374,6 +382,14 @@ def test_scaling_table_takes_speed_ups_only_against_a_run_alone():
     text = scaling_table.table(rows, "a machine", args, side_by_side=True)
     speedups = [line.split("|")[7].strip() for line in text.splitlines() if line.startswith(("| a | 1", "| b |"))]
     assert speedups == ["—", "1.00×", "0.80×", "1.60×"]
+    assert "not checked for other processes on the GPU: a 1x1, b 1x1 alone, b 1x1, b 2x2" in text
+    # What the watch saw of each run's GPUs: another process beside the 2-GPU run is said and marked.
+    for key in rows:
+        if "skipped" not in rows[key]:
+            rows[key]["neighbours"] = {"most_others": 1 if key == ("b", "2x2", "alone") else 0}
+    text = scaling_table.table(rows, "a machine", args, side_by_side=True)
+    assert "b 2x2 shared the GPU with other processes (marked †): their times are not timings" in text
+    assert "| b | 2 × 2 † | alone |" in text and "| b | 1 × 1 | alone |" in text and "not checked" not in text
 
 
 def test_visible_share_by_hand(tmp_path, capsys):
