@@ -35,6 +35,7 @@ from .kernels.projection import (
     sh_to_color_grouped_backward_kernel,
     sh_to_color_kernel,
 )
+from .kernels.statistics import accumulate_statistics_kernel
 
 __all__ = [
     "PendingBins",
@@ -122,6 +123,21 @@ class RasterizeInfo:
             self._absgrad["sums"] = self.means2d.new_zeros(self.means2d.shape[0], 2)
         return self._absgrad["sums"]
 
+    def _gradient(self, absolute: bool) -> torch.Tensor:
+        """[N, 2] pixel-space positional gradient of the backward pass (AbsGS's sums with
+        ``absolute``); RuntimeError when the render was not asked to keep it."""
+        if absolute:
+            grad = self.means2d_absgrad
+            if grad is None:
+                raise RuntimeError(
+                    "call info.retain_absgrad() before backward() to read the absolute positional gradient"
+                )
+            return grad
+        grad = self.means2d.grad
+        if grad is None:
+            raise RuntimeError("call info.means2d.retain_grad() before backward() to read the positional gradient")
+        return grad
+
     def positional_gradient(self, absolute: bool = False) -> torch.Tensor:
         """[N] norm of the screen-space positional gradient of this view in NDC units (3DGS).
 
@@ -129,21 +145,43 @@ class RasterizeInfo:
         accumulates it for densification; ``absolute`` gives the AbsGS variant (sum of per-pixel
         absolute values). Valid after ``backward``; zero where no gradient reached.
         """
-        if absolute:
-            grad = self.means2d_absgrad
-            if grad is None:
-                raise RuntimeError(
-                    "call info.retain_absgrad() before backward() to read the absolute positional gradient"
-                )
-        else:
-            grad = self.means2d.grad
-            if grad is None:
-                raise RuntimeError("call info.means2d.retain_grad() before backward() to read the positional gradient")
+        grad = self._gradient(absolute)
         # Filled on the device: a tensor made from a host list is a blocking copy, and the host
         # would wait for the GPU at every view that accumulates statistics.
         scale = grad.new_empty(2)
         scale[0], scale[1] = 0.5 * self.width, 0.5 * self.height
         return (grad * scale).norm(dim=-1)
+
+    def accumulate_statistics(
+        self, grad_sum: torch.Tensor, count: torch.Tensor, max_radius: torch.Tensor, absolute: bool = False
+    ) -> None:
+        """Add this view's densification statistics in place, one launch: for every Gaussian it
+        sees (both radii > 0) :meth:`positional_gradient` (``absolute``: AbsGS's) to ``grad_sum``,
+        1 to ``count``, and its largest radius into ``max_radius`` (each [N] float32 on the
+        render's device). Valid after ``backward``, as :meth:`positional_gradient`."""
+        gradient = self._gradient(absolute)
+        n = gradient.shape[0]
+        for name, tensor in (("grad_sum", grad_sum), ("count", count), ("max_radius", max_radius)):
+            if tensor.shape != (n,) or tensor.dtype != torch.float32 or tensor.device != gradient.device:
+                raise ValueError(
+                    f"{name} must be a float32 [{n}] tensor on {gradient.device}, got "
+                    f"{tensor.dtype} {list(tensor.shape)} on {tensor.device}"
+                )
+            if not tensor.is_contiguous():
+                raise ValueError(f"{name} must be contiguous (it is updated in place)")
+        gradient = gradient.contiguous()  # held until the launch is queued
+        with _warp_scope(gradient.device):
+            _launch(
+                accumulate_statistics_kernel,
+                n,
+                inputs=[
+                    _arg(gradient, wp.vec2),
+                    _arg(self.radii, wp.vec2i),
+                    0.5 * self.width,
+                    0.5 * self.height,
+                ],
+                outputs=[_arg(grad_sum, wp.float32), _arg(count, wp.float32), _arg(max_radius, wp.float32)],
+            )
 
 
 # --------------------------------------------------------------------------------------------

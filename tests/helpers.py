@@ -1,6 +1,7 @@
 """Helpers shared by the training and strategy tests: hand-built models with known Adam moments,
 fake render records, step contexts, small training configurations."""
 
+import functools
 import math
 import os
 import signal
@@ -9,6 +10,7 @@ from types import SimpleNamespace
 import torch
 from conftest import test_devices
 
+from cdcgs.render import RasterizeInfo
 from cdcgs.train.config import DataConfig, LearningRates, TrainConfig
 from cdcgs.train.model import GaussianModel
 from cdcgs.train.ops import make_optimizer
@@ -61,16 +63,20 @@ def fake_info(grad_pixels: torch.Tensor, visible: torch.Tensor, radius: torch.Te
     def positional_gradient(absolute=False):
         return ((grad_pixels.abs() * 2 if absolute else grad_pixels) * ndc).norm(dim=-1)
 
-    return SimpleNamespace(
+    info = SimpleNamespace(
         means2d=means2d,
         visible=visible,
-        radii=torch.stack([radius, radius], -1).int(),
+        radii=torch.where(visible, radius, torch.zeros_like(radius)).int()[:, None].repeat(1, 2),  # 0: not seen
         width=width,
         height=height,
         means2d_absgrad=grad_pixels.abs() * 2,
         retain_absgrad=lambda: None,
         positional_gradient=positional_gradient,
     )
+    # The render's own statistics kernel, on these tensors.
+    info._gradient = functools.partial(RasterizeInfo._gradient, info)
+    info.accumulate_statistics = functools.partial(RasterizeInfo.accumulate_statistics, info)
+    return info
 
 
 def context(model, optimizer, info, step, seed=0):

@@ -267,6 +267,47 @@ def test_positional_gradient_is_ndc_scaled_means2d_gradient(device):
     assert (absgrad[~info.visible.cpu()] == 0).all()
 
 
+def test_statistics_of_a_render_are_added_in_place_as_3dgs_adds_them(device):
+    """accumulate_statistics (one kernel) against the float64 formula on the render's own
+    gradients and radii: for every Gaussian with both radii > 0 the NDC-scaled gradient norm
+    (AbsGS's sums with ``absolute``) is added, 1 counted, the largest radius kept; the others stay
+    as they were. Bad accumulators are refused, naming them."""
+    scene = make_scene(80, 48, 32, sh_degree=1, seed=5, hard_cases=True)
+    tensors = [t.to(device).requires_grad_() for t in scene.tensors()]
+    image, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=48, height=32)
+    info.means2d.retain_grad()
+    info.retain_absgrad()
+    target = torch.rand(32, 48, 3, generator=torch.Generator().manual_seed(1)).to(device)
+    (image - target).abs().mean().backward()
+    radii = info.radii.cpu()
+    seen = (radii > 0).all(dim=-1)
+    assert seen.any() and (~seen).any()
+    g = torch.Generator().manual_seed(2)
+    start = [torch.rand(80, generator=g, dtype=torch.float64) * s for s in (1e-3, 5.0, 30.0)]
+    for absolute, pixels in ((False, info.means2d.grad), (True, info.means2d_absgrad)):
+        grad_sum, count, max_radius = (t.float().to(device) for t in start)
+        for _ in range(2):
+            info.accumulate_statistics(grad_sum, count, max_radius, absolute=absolute)
+        norm = (pixels.cpu().double() * torch.tensor([24.0, 16.0], dtype=torch.float64)).norm(dim=-1)
+        expected_sum = start[0].float().double() + 2 * torch.where(seen, norm, torch.zeros_like(norm))
+        once = start[1].float() + seen.float()  # float32 additions of 1, as the kernel makes them
+        expected_count = (once + seen.float()).double()
+        largest = torch.where(seen, radii.max(dim=-1).values.double(), torch.zeros(80, dtype=torch.float64))
+        expected_radius = torch.maximum(start[2].float().double(), largest)
+        torch.testing.assert_close(grad_sum.cpu().double(), expected_sum, rtol=1e-6, atol=1e-12)
+        torch.testing.assert_close(count.cpu().double(), expected_count, rtol=0, atol=0)
+        torch.testing.assert_close(max_radius.cpu().double(), expected_radius, rtol=0, atol=0)
+        assert (grad_sum.cpu()[~seen] == start[0].float()[~seen]).all(), "unseen Gaussians untouched"
+    ok = torch.zeros(80, device=device)
+    for bad, name in (
+        ((ok.double(), ok, ok), "grad_sum"),
+        ((ok, ok[:-1], ok), "count"),
+        ((ok, ok, torch.zeros(80, 2, device=device)[:, 0]), "max_radius"),
+    ):
+        with pytest.raises(ValueError, match=name):
+            info.accumulate_statistics(*bad)
+
+
 def test_backward_without_sums_gives_the_same_gradients(device):
     """Without ``retain_absgrad()`` and a depth term in the loss the backward pass runs the blend
     adjoint without those sums (``blend_backward_lean_kernel``): the parameters' gradients must not

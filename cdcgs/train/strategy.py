@@ -339,14 +339,9 @@ class ADC(StrategyOptions):
     # --- pieces (CDC-GS builds on these) ------------------------------------------------------
 
     def accumulate(self, ctx: StepContext, state: dict) -> None:
-        """Add this view's positional gradient norm and screen radius of every visible Gaussian."""
-        info = ctx.info
-        visible = info.visible
-        grad = info.positional_gradient(absolute=self.absgrad)
-        state["grad_sum"] += torch.where(visible, grad, torch.zeros_like(grad))
-        state["count"] += visible.float()
-        radius = info.radii.max(dim=-1).values.float()
-        state["max_radius"] = torch.maximum(state["max_radius"], torch.where(visible, radius, torch.zeros_like(radius)))
+        """Add this view's positional gradient norm and screen radius of every visible Gaussian
+        (one launch: :meth:`cdcgs.render.RasterizeInfo.accumulate_statistics`)."""
+        ctx.info.accumulate_statistics(state["grad_sum"], state["count"], state["max_radius"], absolute=self.absgrad)
 
     def mean_gradient(self, state: dict) -> torch.Tensor:
         return torch.where(
