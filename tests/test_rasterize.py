@@ -249,14 +249,21 @@ def test_sh_vjp_below_the_stored_degree(device, sh_degree):
     assert torch.equal(tensors[4].grad[:, used:].cpu(), torch.zeros_like(tensors[4].grad[:, used:].cpu()))
 
 
-def test_positional_gradient_is_ndc_scaled_means2d_gradient(device):
-    scene = make_scene(80, 48, 32, sh_degree=1, seed=5, hard_cases=False)
+def _backward_with_positional_gradients(device, hard_cases: bool):
+    """The info of a 48 x 32 render of 80 Gaussians after an L1 loss's backward pass, with the
+    positional gradient and AbsGS's sums kept."""
+    scene = make_scene(80, 48, 32, sh_degree=1, seed=5, hard_cases=hard_cases)
     tensors = [t.to(device).requires_grad_() for t in scene.tensors()]
     image, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=48, height=32)
     info.means2d.retain_grad()
     info.retain_absgrad()
     target = torch.rand(32, 48, 3, generator=torch.Generator().manual_seed(1)).to(device)
     (image - target).abs().mean().backward()
+    return info
+
+
+def test_positional_gradient_is_ndc_scaled_means2d_gradient(device):
+    info = _backward_with_positional_gradients(device, hard_cases=False)
     grad = info.means2d.grad.cpu().double()
     expected = (grad * torch.tensor([24.0, 16.0], dtype=torch.float64)).norm(dim=-1)
     torch.testing.assert_close(info.positional_gradient().cpu().double(), expected)
@@ -272,13 +279,7 @@ def test_statistics_of_a_render_are_added_in_place_as_3dgs_adds_them(device):
     gradients and radii: for every Gaussian with both radii > 0 the NDC-scaled gradient norm
     (AbsGS's sums with ``absolute``) is added, 1 counted, the largest radius kept; the others stay
     as they were. Bad accumulators are refused, naming them."""
-    scene = make_scene(80, 48, 32, sh_degree=1, seed=5, hard_cases=True)
-    tensors = [t.to(device).requires_grad_() for t in scene.tensors()]
-    image, _, info = cdcgs.rasterize(*tensors, viewmat=scene.viewmat, K=scene.K, width=48, height=32)
-    info.means2d.retain_grad()
-    info.retain_absgrad()
-    target = torch.rand(32, 48, 3, generator=torch.Generator().manual_seed(1)).to(device)
-    (image - target).abs().mean().backward()
+    info = _backward_with_positional_gradients(device, hard_cases=True)
     radii = info.radii.cpu()
     seen = (radii > 0).all(dim=-1)
     assert seen.any() and (~seen).any()
