@@ -6,7 +6,11 @@
 A config ``GxB`` is G processes (one per GPU, NCCL; ``torchrun --standalone --nproc_per_node=G``
 for G > 1) training with ``--batch-size B``; ``--iters`` counts views seen, so every run sees the
 same number of images. Each run is its own launch, started after the one before it ended, so that
-none shares a GPU or the host, and is preceded by a ``--warmup``-iteration launch of the same
+no two of them share a GPU or the host; what else runs on the machine is watched, not ruled out:
+during each timed run nvidia-smi counts the processes on each of its GPUs every few seconds
+(``gpu_neighbours.json`` in the run's folder), and the table marks with † a run that shared a GPU
+and the speed-ups taken against a baseline that did, and names the runs it could not check. Each
+run is preceded by a ``--warmup``-iteration launch of the same
 command into a scratch folder (Warp compiles its kernels there, not in the timed run). A config
 that needs more GPUs than the machine has is skipped, and said so. ``--side-by-side`` runs the
 one-GPU configs at the same time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``), as many
@@ -41,6 +45,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
 from training_table import (
+    CPU_RUN,
     NEIGHBOURS,
     _number,
     add_common_arguments,
@@ -107,11 +112,12 @@ def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool 
         return {"skipped": why}
     scratch = os.path.join(args.out, f".warm-{name}")
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
+    environment.setdefault("CUDA_DEVICE_ORDER", "PCI_BUS_ID")  # CUDA's indices as nvidia-smi's, for the watch
     if gpu is not None:
         visible = os.environ.get("CUDA_VISIBLE_DEVICES")
         environment["CUDA_VISIBLE_DEVICES"] = visible.split(",")[gpu].strip() if visible else str(gpu)
     steps = [(args.warmup, scratch)] if args.warmup > 0 else []
-    seen = {"gpus": [], "looks": 0, "most_others": None}  # on the CPU: nothing to watch
+    seen = CPU_RUN  # on the CPU: nothing to watch
     for iters, out in [*steps, (args.iters, folder)]:
         line = command(strategy, config, args, out, iters)
         where = f" (GPU {environment['CUDA_VISIBLE_DEVICES']})" if gpu is not None else ""
@@ -194,9 +200,12 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
         f"|---|---{run_rule}|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     first: dict[str, float] = {}  # the speed-ups' baseline: a strategy's first finished run alone
-    for (strategy, _, ran), m in rows.items():
-        if "skipped" not in m and ran == "alone":
-            first.setdefault(strategy, m["iterations"] / m["train_seconds"])
+    shared_baseline = set()  # strategies whose baseline shared its GPU: their speed-ups are marked too
+    for (strategy, config, ran), m in rows.items():
+        if "skipped" not in m and ran == "alone" and strategy not in first:
+            first[strategy] = m["iterations"] / m["train_seconds"]
+            if names[(strategy, config, ran)] in shared:
+                shared_baseline.add(strategy)
     for (strategy, config, ran), m in rows.items():
         processes, batch = parse_config(config)
         label = f"{processes} × {batch}" + (" †" if names[(strategy, config, ran)] in shared else "")
@@ -207,6 +216,7 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
         test = m.get("test", {})
         rate = m["iterations"] / m["train_seconds"]
         speedup = f"{rate / first[strategy]:.2f}×" if strategy in first else "—"
+        speedup += " †" if strategy in shared_baseline and speedup != "—" else ""
         peaks = [p for p in m.get("peak_gpu_memory_gb_per_process") or [m.get("peak_gpu_memory_gb")] if p is not None]
         comm = m.get("communication") or {}
         share = f"{comm['share'] * 100:.0f}% ({comm['all_reduce_ms_per_step']:.2f} ms)" if "share" in comm else "—"

@@ -31,9 +31,11 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -91,6 +93,15 @@ def gsplat_missing() -> str | None:
 WATCH_EVERY = 5.0  # seconds between looks at the GPU during a timed run
 
 
+CPU_RUN = {"device": "cpu"}  # what the watch records of a run on the CPU: nothing to watch
+
+
+def on_cpu(train_options: list[str]) -> bool:
+    """Whether the extra ``cdcgs train`` options put the runs on the CPU (``--device cpu``)."""
+    words = " ".join(train_options).replace("=", " ").split()
+    return any(a == "--device" and b == "cpu" for a, b in itertools.pairwise(words))
+
+
 def visible_gpu() -> str:
     """The GPU a one-GPU run uses, as nvidia-smi names it: the first of CUDA_VISIBLE_DEVICES (an
     index or a UUID), else 0."""
@@ -111,7 +122,8 @@ def gpu_process_count(gpu: str) -> int | None:
         return None
     if done.returncode != 0:
         return None
-    return sum(1 for line in done.stdout.splitlines() if line.strip().isdigit())
+    pids = [int(line) for line in done.stdout.split() if line.strip().isdigit()]
+    return sum(1 for pid in pids if pid != os.getpid())  # this table's own process is not a neighbour
 
 
 def run_watched(cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, **kwargs) -> tuple[int, dict]:
@@ -121,7 +133,9 @@ def run_watched(cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, **k
     and ``most_others`` (the largest count beyond it on any GPU); ``most_others`` is None when no
     look saw the run (nvidia-smi missing, or blind to this container's processes): not checked."""
     looks, most_others = 0, None
-    with subprocess.Popen(cmd, **kwargs) as process:
+    # A session of its own, so that a stop reaches every process of the run (torchrun's workers
+    # start sessions of their own too: the agent forwards SIGTERM to them).
+    with subprocess.Popen(cmd, start_new_session=True, **kwargs) as process:
         try:
             while True:
                 try:
@@ -134,19 +148,35 @@ def run_watched(cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, **k
                     looks += 1
                     most_others = max(most_others or 0, max(counts) - 1)
         except BaseException:  # Ctrl-C, or a failed look: the run does not outlive the table
-            process.kill()
+            stop_group(process)
             raise
     return status, {"gpus": list(gpus), "looks": looks, "most_others": most_others}
+
+
+def stop_group(process: subprocess.Popen, grace: float = 10.0) -> None:
+    """SIGTERM to the process group of ``process`` (a run stops cleanly on it), SIGKILL after
+    ``grace`` seconds if it still runs."""
+    for sig, wait in ((signal.SIGTERM, grace), (signal.SIGKILL, None)):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            process.wait(timeout=wait)
+            return
+        except subprocess.TimeoutExpired:
+            continue
 
 
 def gpu_sharing(rows: dict[str, dict]) -> tuple[list[str], str]:
     """(the runs that shared a GPU with other processes, words for a table's header about it) of
     trained runs' metrics, each with what the watch saw (``neighbours``) or without (unchecked)."""
-    seen = {name: (m.get("neighbours") or {}).get("most_others") for name, m in rows.items()}
+    on_gpus = {name: m for name, m in rows.items() if (m.get("neighbours") or {}).get("device") != "cpu"}
+    seen = {name: (m.get("neighbours") or {}).get("most_others") for name, m in on_gpus.items()}
     shared = [name for name, others in seen.items() if others]
     unchecked = [name for name, others in seen.items() if others is None]
     words = ""
-    if rows and not shared and not unchecked:
+    if seen and not shared and not unchecked:
         words = f", each alone on its GPU (nvidia-smi looked every {WATCH_EVERY:g} s)"
     if shared:
         words += f"; {', '.join(shared)} shared the GPU with other processes (marked †): their times are not timings"
@@ -169,10 +199,13 @@ def train(run: str, args) -> dict:
             return {"skipped": why}
     scratch = os.path.join(args.out, f".warm-{folder_name(run)}")
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
+    environment.setdefault("CUDA_DEVICE_ORDER", "PCI_BUS_ID")  # CUDA's indices as nvidia-smi's, for the watch
     for iters, out in ((min(20, args.iters), scratch), (args.iters, folder)):
         print(f"{run}: {' '.join(command(run, args, out, iters)[1:])}", flush=True)
-        if out == folder:  # the timed run: is it alone on its GPU?
+        if out == folder and not on_cpu(args.train_options):  # the timed run: is it alone on its GPU?
             status, seen = run_watched(command(run, args, out, iters), [visible_gpu()], cwd=ROOT, env=environment)
+        elif out == folder:
+            status, seen = subprocess.run(command(run, args, out, iters), cwd=ROOT, env=environment).returncode, CPU_RUN
         else:
             status = subprocess.run(command(run, args, out, iters), cwd=ROOT, env=environment).returncode
         if status != 0:

@@ -25,6 +25,7 @@ from ._interop import wp_array as _wp
 from .errors import NonFiniteError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
+from .kernels._statistics import accumulate_statistics_kernel
 from .kernels.binning import BinningStart, TileBins, bin_gaussians, finish_binning, start_binning
 from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .kernels.projection import (
@@ -35,7 +36,6 @@ from .kernels.projection import (
     sh_to_color_grouped_backward_kernel,
     sh_to_color_kernel,
 )
-from .kernels.statistics import accumulate_statistics_kernel
 
 __all__ = [
     "PendingBins",

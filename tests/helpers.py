@@ -56,6 +56,7 @@ def moments(optimizer, name):
 
 def fake_info(grad_pixels: torch.Tensor, visible: torch.Tensor, radius: torch.Tensor, width=200, height=100):
     """What a strategy reads of a RasterizeInfo, with a chosen screen-space gradient [N, 2] in pixels."""
+    assert (radius[visible] >= 1).all(), "a visible Gaussian has a radius of at least one pixel"
     means2d = torch.zeros(len(visible), 2, requires_grad=True)
     means2d.grad = grad_pixels
     ndc = torch.tensor([width / 2, height / 2])

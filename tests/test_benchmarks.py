@@ -200,10 +200,10 @@ def test_training_table_counts_the_processes_on_the_gpu_with_nvidia_smi(tmp_path
     fake = tmp_path / "bin"
     fake.mkdir()
     script = fake / "nvidia-smi"
-    script.write_text('#!/bin/sh\necho "$@" > "${0%/*}/args"\nprintf "4242\\n777\\n"\n')
+    script.write_text(f'#!/bin/sh\necho "$@" > "${{0%/*}}/args"\nprintf "4242\\n777\\n{os.getpid()}\\n"\n')
     script.chmod(0o755)
     monkeypatch.setenv("PATH", str(fake))
-    assert training_table.gpu_process_count("GPU-1234") == 2
+    assert training_table.gpu_process_count("GPU-1234") == 2, "the table's own process is not counted"
     assert "--query-compute-apps=pid" in (fake / "args").read_text() and "--id=GPU-1234" in (fake / "args").read_text()
     script.write_text("#!/bin/sh\nexit 9\n")
     assert training_table.gpu_process_count("0") is None
@@ -213,6 +213,41 @@ def test_training_table_counts_the_processes_on_the_gpu_with_nvidia_smi(tmp_path
     assert training_table.visible_gpu() == "3"
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
     assert training_table.visible_gpu() == "0"
+
+
+def test_a_stopped_table_stops_every_process_of_the_run(tmp_path, monkeypatch):
+    """Ctrl-C (or a failed look) while a run is watched stops the run's whole process group, as
+    torchrun's workers need: here a child and the grandchild it started."""
+    import training_table
+
+    pidfile = tmp_path / "grandchild"
+    child = (
+        "import subprocess, sys, time; "
+        "g = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)']); "
+        f"open({str(pidfile)!r}, 'w').write(str(g.pid)); time.sleep(60)"
+    )
+
+    def look(gpu):
+        if pidfile.exists() and pidfile.read_text():
+            raise KeyboardInterrupt
+        return 1
+
+    monkeypatch.setattr(training_table, "gpu_process_count", look)
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        training_table.run_watched([sys.executable, "-c", child], ["0"], every=0.1)
+    grandchild = int(pidfile.read_text())
+
+    def alive(pid):
+        try:
+            with open(f"/proc/{pid}/status") as f:
+                return "\tZ" not in next(line for line in f if line.startswith("State:"))
+        except FileNotFoundError:
+            return False
+
+    while alive(grandchild) and time.monotonic() - start < 20:
+        time.sleep(0.1)
+    assert not alive(grandchild), "the run's grandchild outlived the table"
 
 
 def test_training_table_says_which_runs_shared_their_gpu(monkeypatch):
@@ -268,7 +303,11 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     row = next(line for line in text.splitlines() if line.startswith("| 3dgs |"))
     assert f"{metrics['num_gaussians']:,}" in row and f"{metrics['test']['psnr']:.2f}" in row
     assert "| gsplat | skipped:" in text, "no gsplat or no CUDA here: said, not hidden"
-    assert json.loads((out / "3dgs" / training_table.NEIGHBOURS).read_text())["gpus"] == [training_table.visible_gpu()]
+    # A run on the CPU: nothing to watch, and no claim about a GPU.
+    assert json.loads((out / "3dgs" / training_table.NEIGHBOURS).read_text()) == {"device": "cpu"}
+    assert "alone on its GPU" not in text and "not checked" not in text
+    assert training_table.on_cpu(["--device=cpu"]) and training_table.on_cpu(["--x", "--device", "cpu"])
+    assert not training_table.on_cpu(["--device=cuda"]) and not training_table.on_cpu([])
     # A finished run is read, not trained again.
     assert training_table.main([*argv, "--runs", "3dgs"]) == 0
     assert "3dgs: read the finished run" in capsys.readouterr().out
@@ -390,6 +429,11 @@ def test_scaling_table_takes_speed_ups_only_against_a_run_alone():
     text = scaling_table.table(rows, "a machine", args, side_by_side=True)
     assert "b 2x2 shared the GPU with other processes (marked †): their times are not timings" in text
     assert "| b | 2 × 2 † | alone |" in text and "| b | 1 × 1 | alone |" in text and "not checked" not in text
+    # A baseline that shared its GPU marks every speed-up taken against it.
+    rows[("b", "1x1", "alone")]["neighbours"]["most_others"] = 1
+    text = scaling_table.table(rows, "a machine", args, side_by_side=True)
+    speedups = [line.split("|")[7].strip() for line in text.splitlines() if line.startswith(("| a | 1", "| b |"))]
+    assert speedups == ["—", "1.00× †", "0.80× †", "1.60× †"]
 
 
 def test_visible_share_by_hand(tmp_path, capsys):

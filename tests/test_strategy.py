@@ -40,6 +40,12 @@ def test_gradient_accumulation_over_visible_views():
     torch.testing.assert_close(state["count"], 2.0 * visible)
     torch.testing.assert_close(state["max_radius"], 7.0 * visible)
     torch.testing.assert_close(strategy.mean_gradient(state), expected * visible)
+    # Seen means both radii > 0 (RasterizeInfo.visible): a footprint of zero height is not counted.
+    info = fake_info(grad, visible, torch.full((6,), 3.0))
+    info.radii[0] = torch.tensor([3, 0], dtype=torch.int32)
+    before = {key: state[key].clone() for key in ("grad_sum", "count", "max_radius")}
+    strategy.accumulate(context(model, optimizer, info, 3), state)
+    assert all(state[key][0] == before[key][0] for key in before) and state["count"][1] == 3.0
 
 
 def test_clone_split_prune_choose_the_right_gaussians():

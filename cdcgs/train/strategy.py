@@ -277,9 +277,9 @@ class ADC(StrategyOptions):
     def initialize_state(self, model: GaussianModel) -> dict:
         n, device = model.num, model.device
         state = {
-            "grad_sum": torch.zeros(n, device=device),
-            "count": torch.zeros(n, device=device),
-            "max_radius": torch.zeros(n, device=device),
+            "grad_sum": torch.zeros(n, device=device, dtype=torch.float32),  # float32: the statistics kernel's
+            "count": torch.zeros(n, device=device, dtype=torch.float32),
+            "max_radius": torch.zeros(n, device=device, dtype=torch.float32),
         }
         if self.budget_schedule == "dash":
             # Kept across densification steps (:meth:`apply`): the count the run started with and
