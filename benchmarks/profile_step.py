@@ -392,17 +392,17 @@ def main(argv=None) -> int:
         parser.error(f"--data {args.data!r} is not a folder")
     if args.ply and not os.path.isfile(args.ply):
         parser.error(f"--ply {args.ply!r} is not a file")
-    exact = cdcgs.render.bin_gaussians
+    exact = cdcgs.render.start_binning  # the binning of every render and Γ pass starts here
 
     def rectangles(*a, conics=None, opacities=None, **k):
         return exact(*a, **k)
 
     if args.rectangles:
-        cdcgs.render.bin_gaussians = rectangles
+        cdcgs.render.start_binning = rectangles
     try:
         rows = [measure(args, count) for count in args.gaussians]
     finally:
-        cdcgs.render.bin_gaussians = exact
+        cdcgs.render.start_binning = exact
     machine = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
     print_report(rows, machine)
     if args.out:

@@ -26,7 +26,7 @@ from .errors import NonFiniteError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
 from .kernels._statistics import accumulate_statistics_kernel
-from .kernels.binning import BinningStart, TileBins, bin_gaussians, finish_binning, start_binning
+from .kernels.binning import BinningStart, TileBins, finish_binning, start_binning
 from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .kernels.projection import (
     Camera,
@@ -211,20 +211,8 @@ def _project(means, quats, scales, opacities, camera: Camera, antialiased: bool,
 def _bin(means2d, radii, depths, conics, opacities, width: int, height: int, read_count) -> TileBins:
     """The depth-sorted tile lists of a projection, each Gaussian only in the tiles where it
     reaches alpha 1/255 (``read_count``: as :func:`cdcgs.kernels.binning.bin_gaussians`)."""
-    allocate, zeros = _torch_allocators(means2d.device)
-    return bin_gaussians(
-        _wp(means2d.detach(), wp.vec2),
-        _wp(radii, wp.vec2i),
-        _wp(depths.detach(), wp.float32),
-        width,
-        height,
-        allocate=allocate,
-        zeros=zeros,
-        read_count=read_count,
-        conics=_wp(conics.detach(), wp.vec3),
-        opacities=_wp(opacities.detach(), wp.float32),
-        launch=_launch,
-    )
+    start = _start_bin(means2d, radii, depths, conics, opacities, width, height)
+    return finish_binning(start, int(read_count(start.offsets)))
 
 
 def _start_bin(means2d, radii, depths, conics, opacities, width: int, height: int) -> BinningStart:
