@@ -1,13 +1,19 @@
-"""SelectiveAdam (``--optimizer selective``) against a float64 Adam written out here, torch's Adam,
-the densification surgery and a training step."""
+"""FusedAdam (``--optimizer adam`` and ``selective``) against a float64 Adam written out here,
+torch's Adam, the densification surgery and a training step; its kernel from plain Warp."""
 
+import copy
+
+import numpy as np
 import pytest
 import torch
+import warp as wp
 from helpers import SHORT, hand_model, tiny_config
 
+import cdcgs.train.optim
+from cdcgs.kernels import fused_adam_kernel
 from cdcgs.train import ops
 from cdcgs.train.config import LearningRates
-from cdcgs.train.optim import SelectiveAdam
+from cdcgs.train.optim import FusedAdam
 from cdcgs.train.trainer import Trainer
 
 SHAPES = {"means": (3,), "opacity": (), "sh_rest": (15, 3)}
@@ -46,7 +52,7 @@ def test_selected_rows_follow_adam_the_others_stay(device, share):
     masks = [torch.rand(n, generator=g) < share for _ in range(steps)]
     masks[-1][:3] = False  # some rows are never selected at the end
     live = {k: v.clone().to(device).requires_grad_() for k, v in params.items()}
-    optimizer = SelectiveAdam([{"params": [p]} for p in live.values()], lr=lr, betas=betas, eps=eps)
+    optimizer = FusedAdam([{"params": [p]} for p in live.values()], lr=lr, betas=betas, eps=eps)
     for grad, mask in zip(grads, masks):
         for k, p in live.items():
             p.grad = grad[k].to(device)
@@ -68,7 +74,7 @@ def test_without_a_mask_it_is_torch_adam(device):
     g = torch.Generator().manual_seed(4)
     a = torch.randn(50, 3, generator=g).to(device).requires_grad_()
     b = a.detach().clone().requires_grad_()
-    ours = SelectiveAdam([a], lr=0.003, eps=1e-15)
+    ours = FusedAdam([a], lr=0.003, eps=1e-15)
     theirs = torch.optim.Adam([b], lr=0.003, eps=1e-15)
     for _ in range(5):
         grad = torch.randn(50, 3, generator=g).to(device)
@@ -77,6 +83,86 @@ def test_without_a_mask_it_is_torch_adam(device):
         theirs.step()
     torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
     torch.testing.assert_close(ours.state[a]["exp_avg_sq"], theirs.state[b]["exp_avg_sq"])
+
+
+# A 3DGS model's parameters: rows of 3, 3, 4, 1 (a 1-D tensor), 1 x 3 and 15 x 3 values.
+MODEL_SHAPES = [(3,), (3,), (4,), (), (1, 3), (15, 3)]
+
+
+def test_every_group_in_one_launch_is_torch_adam(device, monkeypatch):
+    """Six groups, each with its own rate, eps and betas, one of them resumed at step 4: one
+    launch per step, and every group where torch's Adam (the plain loop, as reference) puts it."""
+    launches = []
+    real_launch = cdcgs.train.optim.launch
+    monkeypatch.setattr(cdcgs.train.optim, "launch", lambda *a, **k: launches.append(a[0]) or real_launch(*a, **k))
+    g = torch.Generator().manual_seed(5)
+    n = 23
+    ours = [torch.randn(n, *shape, generator=g).to(device).requires_grad_() for shape in MODEL_SHAPES]
+    theirs = [p.detach().clone().requires_grad_() for p in ours]
+    settings = [
+        {"lr": 0.01 * (k + 1), "eps": 10.0 ** -(8 + k), "betas": (0.9 - 0.05 * k, 0.999 - 0.001 * k)}
+        for k in range(len(ours))
+    ]
+    fused = FusedAdam([{"params": [p], **s} for p, s in zip(ours, settings)])
+    reference = torch.optim.Adam([{"params": [p], **s} for p, s in zip(theirs, settings)], foreach=False)
+    earlier = torch.randn(n, *MODEL_SHAPES[2], generator=g).to(device)  # a group resumed after 4 steps
+    for optimizer, p in ((fused, ours[2]), (reference, theirs[2])):
+        optimizer.state[p] = {
+            "step": torch.tensor(4.0),
+            "exp_avg": earlier.clone() * 0.1,
+            "exp_avg_sq": earlier.clone() ** 2 * 0.01,
+        }
+    for _ in range(5):
+        for a, b in zip(ours, theirs):
+            grad = torch.randn(a.shape, generator=g).to(device)
+            a.grad, b.grad = grad.clone(), grad.clone()
+        fused.step()
+        reference.step()
+    assert launches == [fused_adam_kernel] * 5
+    for a, b in zip(ours, theirs):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+        for key in ("exp_avg", "exp_avg_sq"):  # torch lerps the first moment: an ulp of the largest term apart
+            ref = reference.state[b][key]
+            torch.testing.assert_close(fused.state[a][key], ref, rtol=1e-5, atol=1e-6 * ref.abs().max().item())
+    assert float(fused.state[ours[2]]["step"]) == 9 and float(fused.state[ours[0]]["step"]) == 5
+
+
+def test_the_fused_kernel_from_plain_warp(device):
+    """``fused_adam_kernel`` launched with Warp arrays and its three tables, no torch: two
+    parameters of different widths, a row mask, against Adam in float64 written out with numpy."""
+    wp_device = device  # "cpu" or "cuda", as Warp names them
+    rng = np.random.default_rng(6)
+    rows, widths, lrs, step = 11, (3, 5), (0.02, 0.5), 3
+    values = [rng.normal(size=rows * w).astype(np.float32) for w in widths]
+    grads = [rng.normal(size=rows * w).astype(np.float32) for w in widths]
+    m0 = [rng.normal(size=rows * w).astype(np.float32) * 0.1 for w in widths]
+    v0 = [(rng.normal(size=rows * w) ** 2).astype(np.float32) * 0.01 for w in widths]
+    selected = (rng.random(rows) < 0.6).astype(np.uint8)
+    arrays = [[wp.array(x[k], dtype=float, device=wp_device) for x in (values, grads, m0, v0)] for k in range(2)]
+    beta1, beta2, eps = 0.9, 0.999, 1e-8
+    bc1, bc2 = 1 - beta1**step, 1 - beta2**step
+    addresses = wp.array([[a.ptr for a in arrays[k]] for k in range(2)], dtype=wp.int64, device=wp_device)
+    layout = wp.array(
+        [[0, rows * widths[0], widths[0]], [rows * widths[0], rows * widths[1], widths[1]]],
+        dtype=wp.int32,
+        device=wp_device,
+    )
+    rates = wp.array(
+        [[lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bc1, np.sqrt(bc2)] for lr in lrs], dtype=float, device=wp_device
+    )
+    mask = wp.array(selected, dtype=wp.uint8, device=wp_device)
+    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[addresses, layout, rates, mask], device=wp_device)
+    for k, w in enumerate(widths):
+        g = grads[k].astype(np.float64)
+        m = beta1 * m0[k] + (1 - beta1) * g
+        v = beta2 * v0[k].astype(np.float64) + (1 - beta2) * g * g
+        p = values[k] - lrs[k] / bc1 * m / (np.sqrt(v) / np.sqrt(bc2) + eps)
+        keep = np.repeat(selected == 0, w)
+        expected = [np.where(keep, values[k], p), np.where(keep, m0[k], m), np.where(keep, v0[k], v)]
+        got = [arrays[k][0].numpy(), arrays[k][2].numpy(), arrays[k][3].numpy()]
+        for ours, ref in zip(got, expected):
+            np.testing.assert_allclose(ours, ref, rtol=2e-6, atol=1e-7)
+        assert np.array_equal(got[0][keep], values[k][keep]), "an unselected row moved"
 
 
 @pytest.mark.parametrize(
@@ -91,7 +177,7 @@ def test_a_bad_mask_is_refused_and_nothing_moves(mask, message):
     p = torch.randn(10, 3, requires_grad=True)
     before = [first.detach().clone(), p.detach().clone()]
     first.grad, p.grad = torch.ones(9, 2), torch.ones(10, 3)
-    optimizer = SelectiveAdam([{"params": [first]}, {"params": [p]}], lr=0.1)
+    optimizer = FusedAdam([{"params": [first]}, {"params": [p]}], lr=0.1)
     with pytest.raises(ValueError, match=message):
         optimizer.step(mask)
     assert torch.equal(first.detach(), before[0]) and torch.equal(p.detach(), before[1])
@@ -101,7 +187,7 @@ def test_a_bad_mask_is_refused_and_nothing_moves(mask, message):
 def test_the_surgery_keeps_its_moments_in_step():
     model, adam = hand_model()
     optimizer = ops.make_optimizer(model, LearningRates(), 1.0, "selective")
-    assert isinstance(optimizer, SelectiveAdam)
+    assert isinstance(optimizer, FusedAdam)
     optimizer.load_state_dict(adam.state_dict())  # Adam's state, as a resume with the other optimizer loads it
     for group in optimizer.param_groups:
         group["lr"] = 0.01  # the hand model's Adam leaves the opacity rate unset
@@ -143,3 +229,83 @@ def test_a_training_step_moves_only_what_the_view_sees(tiny_scene, tmp_path):
     for k, p in trainer.model.params.items():
         assert torch.equal(p.detach()[~visible], before[k][~visible]), f"{k}: an unseen Gaussian moved"
     assert not torch.equal(trainer.model.params["means"].detach()[visible], before["means"][visible])
+
+
+def test_a_bad_state_is_refused_and_nothing_moves():
+    """The kernel writes the moments through their addresses: a state of the wrong shape, dtype or
+    layout (a broken or foreign checkpoint) is refused before anything is updated."""
+    first = torch.randn(6, 3, requires_grad=True)
+    p = torch.randn(4, 3, requires_grad=True)
+    first.grad, p.grad = torch.ones(6, 3), torch.ones(4, 3)
+    for bad, message in (
+        ({"exp_avg": torch.zeros(2, 3)}, r"'exp_avg' of a \[4, 3\] parameter .* got torch.float32 \[2, 3\]"),
+        ({"exp_avg_sq": torch.zeros(4, 3, dtype=torch.float64)}, r"'exp_avg_sq' .* got torch.float64 \[4, 3\]"),
+        ({"exp_avg": torch.zeros(3, 4).t()}, r"'exp_avg' .* not contiguous"),
+        ({"step": None}, r"no step count"),
+    ):
+        optimizer = FusedAdam([{"params": [first]}, {"params": [p]}], lr=0.1)
+        state = {"step": torch.tensor(2.0), "exp_avg": torch.zeros(4, 3), "exp_avg_sq": torch.zeros(4, 3)}
+        state.update(bad)
+        if state["step"] is None:
+            del state["step"]
+        optimizer.state[p] = state
+        before = [first.detach().clone(), p.detach().clone()]
+        with pytest.raises(ValueError, match=message):
+            optimizer.step()
+        assert torch.equal(first.detach(), before[0]) and torch.equal(p.detach(), before[1])
+        assert first not in optimizer.state, "the first parameter's state was not created either"
+
+
+def test_a_torch_adam_checkpoint_resumes():
+    """A state saved by torch's Adam (step on the device for its fused flavour, its own options in
+    the groups) goes on as torch's Adam would, a parameter without a gradient skipped; options
+    FusedAdam does not have are refused."""
+    g = torch.Generator().manual_seed(7)
+    ours = [torch.randn(9, *shape, generator=g).requires_grad_() for shape in MODEL_SHAPES[:3]]
+    theirs = [p.detach().clone().requires_grad_() for p in ours]
+    reference = torch.optim.Adam([{"params": [p], "lr": 0.01 * (k + 1)} for k, p in enumerate(theirs)], eps=1e-15)
+    fused = FusedAdam([{"params": [p], "lr": 0.01 * (k + 1)} for k, p in enumerate(ours)], eps=1e-15)
+    grads = [[torch.randn(p.shape, generator=g) for p in ours] for _ in range(5)]
+    for step in range(5):
+        if step == 3:
+            fused.load_state_dict(copy.deepcopy(reference.state_dict()))  # a checkpoint: its own tensors
+            for p_ours, p_theirs in zip(ours, theirs):
+                p_ours.data.copy_(p_theirs.detach())
+        for k, (a, b) in enumerate(zip(ours, theirs)):
+            skip = step == 4 and k == 1  # no gradient for this parameter at this step
+            a.grad = None if skip else grads[step][k].clone()
+            b.grad = None if skip else grads[step][k].clone()
+        if step >= 3:
+            fused.step()
+        reference.step()
+    for a, b in zip(ours, theirs):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    assert float(fused.state[ours[1]]["step"]) == 4 and float(fused.state[ours[0]]["step"]) == 5
+    fused.param_groups[0]["amsgrad"] = True
+    with pytest.raises(ValueError, match="FusedAdam is Adam without amsgrad"):
+        fused.step()
+
+
+def test_a_model_too_large_for_one_launch_takes_several(monkeypatch):
+    """Launch indices are 32-bit: above MAX_LAUNCH_VALUES values the parameters go into several
+    launches, with the same result."""
+    g = torch.Generator().manual_seed(8)
+    base = [torch.randn(10, *shape, generator=g) for shape in MODEL_SHAPES]
+    grads = [torch.randn(p.shape, generator=g) for p in base]
+    launches = []
+    real_launch = cdcgs.train.optim.launch
+    monkeypatch.setattr(cdcgs.train.optim, "launch", lambda *a, **k: launches.append(a[1]) or real_launch(*a, **k))
+    results = {}
+    for limit in (cdcgs.train.optim.MAX_LAUNCH_VALUES, 450):
+        monkeypatch.setattr(cdcgs.train.optim, "MAX_LAUNCH_VALUES", limit)
+        launches.clear()
+        params = [p.clone().requires_grad_() for p in base]
+        optimizer = FusedAdam([{"params": [p], "lr": 0.05} for p in params])
+        for p, grad in zip(params, grads):
+            p.grad = grad.clone()
+        optimizer.step(torch.arange(10) % 3 != 0)
+        results[limit] = (list(launches), [p.detach() for p in params])
+    one, several = results.values()
+    assert one[0] == [590] and several[0] == [140, 450], "sizes of the launches: all 590 values, then split"
+    for a, b in zip(one[1], several[1]):
+        assert torch.equal(a, b)

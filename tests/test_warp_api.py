@@ -36,6 +36,7 @@ PUBLIC_KERNEL_API = {
     "ssim_l1_backward_kernel",
     "ssim_l1_launch_size",
     "selective_adam_kernel",
+    "fused_adam_kernel",
 }
 
 

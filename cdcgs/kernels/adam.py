@@ -1,12 +1,18 @@
-"""Adam on the rows of a parameter that a mask selects: "selective Adam".
+"""Adam for the Gaussians' parameters: every parameter in one launch, and on selected rows.
 
 Pure Warp. A parameter is a flat float32 array of ``rows * row_width`` values (one row per
-Gaussian: 3 for the means, 48 for the SH coefficients past degree 0, ...) with its gradient and
-Adam's two moments laid out alike. ``selective_adam_kernel`` (``dim=rows * row_width``) applies
-torch's Adam update (``torch.optim.Adam``, no weight decay, no amsgrad) to the values of the rows
-whose ``selected`` entry is non-zero and leaves every other row, parameter and moments, as it is.
-With every row selected it is Adam.
+Gaussian: 3 for the means, 45 for the SH coefficients past degree 0, ...) with its gradient and
+Adam's two moments laid out alike. Both kernels apply torch's Adam update (``torch.optim.Adam``,
+no weight decay, no amsgrad) through one function, ``adam_update``:
 
+- ``fused_adam_kernel`` updates several parameters in one launch (``dim`` = their total number
+  of values), each with its own rates and step count, read from three small tables. torch's
+  fused Adam launches once per parameter group, and a 3DGS model has six groups (one learning
+  rate each).
+- ``selective_adam_kernel`` updates one parameter (``dim=rows * row_width``).
+
+Both take ``selected``, one entry per row: a row whose entry is 0 keeps its values and both
+moments ("selective Adam"; ``fused_adam_kernel`` with an empty ``selected`` updates every row).
 Leaving the moments of unselected rows undecayed is the point and the approximation: a Gaussian
 that the view does not see neither moves nor forgets (Taming 3DGS's and gsplat's SelectiveAdam),
 where Adam would still move it by its momentum.
@@ -14,9 +20,84 @@ where Adam would still move it by its momentum.
 
 import warp as wp
 
-__all__ = ["selective_adam_kernel"]
+__all__ = ["fused_adam_kernel", "selective_adam_kernel"]
 
 wp.set_module_options({"fast_math": False})
+
+
+@wp.func
+def adam_update(
+    param: wp.array(dtype=float),
+    grad: wp.array(dtype=float),
+    exp_avg: wp.array(dtype=float),
+    exp_avg_sq: wp.array(dtype=float),
+    i: int,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    one_minus_beta1: float,
+    one_minus_beta2: float,
+    eps: float,
+    bias_correction1: float,
+    bias_correction2_sqrt: float,
+):
+    """One Adam step of value ``i``: m = b1 m + (1 - b1) g, v = b2 v + (1 - b2) g^2,
+    p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps), as torch computes it (bc = 1 - b^step).
+    ``one_minus_beta1`` and ``one_minus_beta2`` are 1 - b computed by the caller in double
+    precision, as torch's Adam passes them (1 - float32(0.999) is 1.3e-5 off)."""
+    g = grad[i]
+    m = beta1 * exp_avg[i] + one_minus_beta1 * g
+    v = beta2 * exp_avg_sq[i] + one_minus_beta2 * g * g
+    exp_avg[i] = m
+    exp_avg_sq[i] = v
+    param[i] = param[i] - (lr / bias_correction1) * m / (wp.sqrt(v) / bias_correction2_sqrt + eps)
+
+
+# Columns of fused_adam_kernel's tables.
+ADDRESS_COLUMNS = 4  # value, gradient, exp_avg, exp_avg_sq: addresses of float32 arrays
+LAYOUT_COLUMNS = 3  # first value's index in the launch, number of values, values per row
+RATE_COLUMNS = 8  # lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bias_correction1, bias_correction2_sqrt
+
+
+@wp.kernel(enable_backward=False)
+def fused_adam_kernel(
+    addresses: wp.array2d(dtype=wp.int64),
+    layout: wp.array2d(dtype=wp.int32),
+    rates: wp.array2d(dtype=float),
+    selected: wp.array(dtype=wp.uint8),
+):
+    """One Adam step of every parameter of the tables, one thread per value.
+
+    Parameter ``k`` (row ``k`` of each table) owns the launch indices ``layout[k, 0]`` to
+    ``layout[k, 0] + layout[k, 1]``, in order and without gaps: ``layout[0, 0]`` is 0 and the
+    launch's ``dim`` is the sum of ``layout[:, 1]``. ``addresses[k]``: the addresses of its value,
+    gradient, exp_avg and exp_avg_sq arrays (float32, ``layout[k, 1]`` each); ``rates[k]``: as the
+    arguments of ``selective_adam_kernel``, in that order. ``selected``: one entry per row
+    (``layout[k, 2]`` values) shared by every parameter, or empty for every row."""
+    i = wp.tid()
+    k = int(0)
+    while k + 1 < layout.shape[0] and i >= layout[k + 1, 0]:
+        k += 1
+    local = i - layout[k, 0]
+    if selected.shape[0] > 0:
+        if selected[local // layout[k, 2]] == wp.uint8(0):
+            return
+    count = layout[k, 1]
+    adam_update(
+        wp.array(ptr=wp.uint64(addresses[k, 0]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(addresses[k, 1]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(addresses[k, 2]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(addresses[k, 3]), shape=(count,), dtype=float),
+        local,
+        rates[k, 0],
+        rates[k, 1],
+        rates[k, 2],
+        rates[k, 3],
+        rates[k, 4],
+        rates[k, 5],
+        rates[k, 6],
+        rates[k, 7],
+    )
 
 
 @wp.kernel(enable_backward=False)
@@ -36,16 +117,23 @@ def selective_adam_kernel(
     bias_correction1: float,
     bias_correction2_sqrt: float,
 ):
-    """One Adam step of the selected rows: m = b1 m + (1 - b1) g, v = b2 v + (1 - b2) g^2,
-    p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps), as torch computes it (bc = 1 - b^step).
-    ``one_minus_beta1`` and ``one_minus_beta2`` are 1 - b computed by the caller in double
-    precision, as torch's Adam passes them (1 - float32(0.999) is 1.3e-5 off)."""
+    """One Adam step (``adam_update``) of the rows of one parameter whose ``selected`` entry is
+    non-zero."""
     i = wp.tid()
     if selected[i // row_width] == wp.uint8(0):
         return
-    g = grad[i]
-    m = beta1 * exp_avg[i] + one_minus_beta1 * g
-    v = beta2 * exp_avg_sq[i] + one_minus_beta2 * g * g
-    exp_avg[i] = m
-    exp_avg_sq[i] = v
-    param[i] = param[i] - (lr / bias_correction1) * m / (wp.sqrt(v) / bias_correction2_sqrt + eps)
+    adam_update(
+        param,
+        grad,
+        exp_avg,
+        exp_avg_sq,
+        i,
+        lr,
+        beta1,
+        beta2,
+        one_minus_beta1,
+        one_minus_beta2,
+        eps,
+        bias_correction1,
+        bias_correction2_sqrt,
+    )

@@ -163,7 +163,7 @@ class TrainConfig:
     )
     optimizer: str | None = option(
         None,
-        "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; faster, not exact) (none: the preset's, adam; selective for fast)",
+        "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; not exact) (none: the preset's, adam; selective for fast)",
         choices=OPTIMIZERS,
     )
     resolution_schedule: str | None = option(

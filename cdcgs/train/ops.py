@@ -16,7 +16,7 @@ import torch
 from ..geometry import quat_to_rotation
 from .config import LearningRates
 from .model import PARAM_NAMES, GaussianModel
-from .optim import SelectiveAdam
+from .optim import FusedAdam
 
 __all__ = ["append", "clone", "make_optimizer", "relocate", "remove", "reset_opacity", "set_hyperparameters", "split"]
 
@@ -27,21 +27,18 @@ def make_optimizer(
     extent: float,
     kind: str = "adam",
     batch_rule: tuple[float, float, float] = (1.0, 1.0, 1.0),
-) -> torch.optim.Adam | SelectiveAdam:
+) -> FusedAdam:
     """One Adam parameter group per parameter, named, with the 3DGS rates (eps 1e-15 as 3DGS).
 
-    ``kind`` "adam": torch's Adam, on CUDA the fused implementation (one kernel per group instead
-    of a chain of foreach kernels); "selective": :class:`cdcgs.train.optim.SelectiveAdam` (its
-    ``step`` takes the mask of the Gaussians to update). ``batch_rule``: (learning-rate factor,
-    eps factor, beta power) of a batch of views per step (:func:`cdcgs.train.config.batch_rule`).
+    :class:`cdcgs.train.optim.FusedAdam` (all groups in one Warp launch) for both kinds:
+    "adam" steps every Gaussian, "selective" tells the trainer to pass ``step`` the mask of the
+    Gaussians the view sees. ``batch_rule``: (learning-rate factor, eps factor, beta power) of a
+    batch of views per step (:func:`cdcgs.train.config.batch_rule`).
     """
     if kind not in ("adam", "selective"):
         raise ValueError(f"optimizer must be adam or selective, got {kind!r}")
     groups = [{"params": [model.params[name]], "name": name} for name in PARAM_NAMES]
-    if kind == "selective":
-        optimizer = SelectiveAdam(groups, lr=0.0, eps=1e-15)
-    else:
-        optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=model.device.type == "cuda")
+    optimizer = FusedAdam(groups, lr=0.0, eps=1e-15)
     set_hyperparameters(optimizer, lrs, extent, batch_rule)
     return optimizer
 

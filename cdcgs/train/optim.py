@@ -1,11 +1,14 @@
-"""SelectiveAdam: Adam on the Gaussians that the step's render saw, the others left alone.
+"""FusedAdam: Adam on every parameter in one Warp launch, optionally on selected Gaussians only.
 
 A torch optimizer over the model's parameters (one group per parameter, rows = Gaussians, as
 :func:`cdcgs.train.ops.make_optimizer` builds it), with Adam's state layout (``step``,
 ``exp_avg``, ``exp_avg_sq``), so the densification surgery of :mod:`cdcgs.train.ops`, checkpoints
-and resume treat it as Adam, and a run may resume with the other optimizer. ``step(selected)``
-updates the rows where ``selected`` [N] is True with ``cdcgs.kernels.adam.selective_adam_kernel``
-and does not touch the others' parameters or moments; ``step()`` without a mask is Adam.
+and resume treat it as Adam, and a run may resume from a checkpoint of torch's Adam.
+
+``step()`` is Adam: one launch of ``cdcgs.kernels.adam.fused_adam_kernel`` for all groups, where
+torch's fused Adam launches once per group (six for a 3DGS model, each with its own learning
+rate). ``step(selected)`` updates only the rows where ``selected`` [N] is True and does not touch
+the others' parameters or moments ("selective Adam", ``--optimizer selective``).
 """
 
 from __future__ import annotations
@@ -16,18 +19,19 @@ import torch
 import warp as wp
 
 from .._interop import launch, warp_scope, wp_arg
-from ..kernels.adam import selective_adam_kernel
+from ..kernels.adam import fused_adam_kernel
 
-__all__ = ["SelectiveAdam"]
+__all__ = ["FusedAdam", "SelectiveAdam"]
 
 
-class SelectiveAdam(torch.optim.Optimizer):
-    """Adam restricted to selected rows. ``params``: tensors (or groups) whose first dimension is
-    the row (the Gaussian); ``lr``, ``betas``, ``eps`` as ``torch.optim.Adam`` (no weight decay)."""
+class FusedAdam(torch.optim.Optimizer):
+    """Adam in one launch, optionally restricted to selected rows. ``params``: float32 tensors (or
+    groups) whose first dimension is the row (the Gaussian); ``lr``, ``betas``, ``eps`` as
+    ``torch.optim.Adam`` (no weight decay)."""
 
     def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
         if lr < 0.0 or eps < 0.0 or not (0.0 <= betas[0] < 1.0 and 0.0 <= betas[1] < 1.0):
-            raise ValueError(f"SelectiveAdam needs lr >= 0, eps >= 0 and betas in [0, 1), got {lr}, {eps}, {betas}")
+            raise ValueError(f"Adam needs lr >= 0, eps >= 0 and betas in [0, 1), got {lr}, {eps}, {betas}")
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
 
     @torch.no_grad()
@@ -39,51 +43,136 @@ class SelectiveAdam(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
         updated = [(group, p) for group in self.param_groups for p in group["params"] if p.grad is not None]
-        for _, p in updated:  # every check before any update: a refused step changes nothing
-            if p.dtype != torch.float32 or not p.is_contiguous():
-                raise ValueError(f"SelectiveAdam updates contiguous float32 parameters, got {p.dtype} {list(p.shape)}")
-            if selected is not None and (selected.shape != (p.shape[0],) or selected.dtype != torch.bool):
-                raise ValueError(
-                    f"selected must be a bool [{p.shape[0]}] mask (one entry per row of the parameter), "
-                    f"got {selected.dtype} {list(selected.shape)}"
-                )
+        if not updated:
+            return loss
+        device = updated[0][1].device
+        for group, p in updated:  # every check before any update: a refused step changes nothing
+            _check(group, p, self.state.get(p), device, selected)
+        parameters = []  # (addresses, number of values, values per row, rates) of each parameter
+        held = []  # tensors the launch reads through their addresses, alive until it is queued
         for group, p in updated:
-            beta1, beta2 = group["betas"]
-            rows = p.shape[0]
-            if selected is None:
-                mask = torch.ones(rows, dtype=torch.bool, device=p.device)
-            else:
-                mask = selected.to(p.device).contiguous()
             state = self.state[p]
             if not state:
                 state["step"] = torch.zeros((), dtype=torch.float32)
                 state["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
                 state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-            if state["step"].device.type != "cpu":  # Adam's fused state (resume): the count on the host, once
+            if state["step"].device.type != "cpu":  # torch's fused Adam keeps it on the device: once
                 state["step"] = state["step"].cpu()
             state["step"] += 1
             t = float(state["step"])
-            grad = p.grad.contiguous()  # held here: a launch argument does not keep its tensor alive
-            width = p.numel() // rows if rows else 1
-            with warp_scope(p.device):
+            beta1, beta2 = group["betas"]
+            grad = p.grad.contiguous()
+            held.append(grad)
+            rows = p.shape[0] if p.dim() else 1
+            rates = [
+                group["lr"],
+                beta1,
+                beta2,
+                1.0 - beta1,  # in double precision, as torch passes it
+                1.0 - beta2,
+                group["eps"],
+                1.0 - beta1**t,
+                math.sqrt(1.0 - beta2**t),
+            ]
+            addresses = [x.data_ptr() for x in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
+            parameters.append((addresses, p.numel(), p.numel() // rows if rows else 1, rates))
+        if selected is None:
+            mask = torch.empty(0, dtype=torch.uint8, device=device)
+        else:
+            mask = selected.to(device).contiguous().view(torch.uint8)
+        for batch in _launches(parameters):
+            layout, start = [], 0
+            for _, count, width, _ in batch:
+                layout.append([start, count, width])
+                start += count
+            tables = [
+                _on(device, [entry[0] for entry in batch], torch.int64),
+                _on(device, layout, torch.int32),
+                _on(device, [entry[3] for entry in batch], torch.float32),
+            ]
+            with warp_scope(device):
                 launch(
-                    selective_adam_kernel,
-                    p.numel(),
+                    fused_adam_kernel,
+                    start,
                     inputs=[
-                        wp_arg(p.view(-1), wp.float32),
-                        wp_arg(grad.view(-1), wp.float32),
-                        wp_arg(state["exp_avg"].view(-1), wp.float32),
-                        wp_arg(state["exp_avg_sq"].view(-1), wp.float32),
-                        wp_arg(mask.view(torch.uint8), wp.uint8),
-                        width,
-                        float(group["lr"]),
-                        float(beta1),
-                        float(beta2),
-                        1.0 - beta1,
-                        1.0 - beta2,
-                        float(group["eps"]),
-                        1.0 - beta1**t,
-                        math.sqrt(1.0 - beta2**t),
+                        wp_arg(tables[0], wp.int64),
+                        wp_arg(tables[1], wp.int32),
+                        wp_arg(tables[2], wp.float32),
+                        wp_arg(mask, wp.uint8),
                     ],
                 )
         return loss
+
+
+# The name of ``--optimizer selective``'s optimizer before Adam and selective Adam became one class.
+SelectiveAdam = FusedAdam
+
+
+# A launch's indices are 32-bit: parameters are grouped into launches of fewer values.
+MAX_LAUNCH_VALUES = 2**31 - 1
+
+
+def _check(group: dict, p: torch.Tensor, state: dict | None, device: torch.device, selected) -> None:
+    """Refuse a parameter, its gradient, its Adam state or the mask before anything is updated
+    (the kernel reads and writes them through their addresses: a wrong shape would write out of
+    bounds)."""
+    if p.dtype != torch.float32 or not p.is_contiguous():
+        raise ValueError(f"FusedAdam updates contiguous float32 parameters, got {p.dtype} {list(p.shape)}")
+    if p.device != device:
+        raise ValueError(f"FusedAdam updates parameters on one device, got {p.device} and {device}")
+    if p.grad.shape != p.shape:
+        raise ValueError(f"a gradient of shape {list(p.grad.shape)} for a parameter of {list(p.shape)}")
+    if p.numel() > MAX_LAUNCH_VALUES:
+        raise ValueError(f"FusedAdam updates parameters of at most 2^31 - 1 values, got {list(p.shape)}")
+    if selected is not None and p.dim() == 0:
+        raise ValueError("selected picks rows, and a 0-d parameter has none")
+    if selected is not None and (selected.shape != (p.shape[0],) or selected.dtype != torch.bool):
+        raise ValueError(
+            f"selected must be a bool [{p.shape[0]}] mask (one entry per row of the parameter), "
+            f"got {selected.dtype} {list(selected.shape)}"
+        )
+    for key in ("amsgrad", "weight_decay", "maximize"):
+        if group.get(key):  # a state loaded from torch's Adam carries its options
+            raise ValueError(f"FusedAdam is Adam without {key}, but a parameter group sets {key}={group[key]!r}")
+    if state:
+        if "step" not in state:
+            raise ValueError(f"the Adam state of a {list(p.shape)} parameter has no step count")
+        for key in ("exp_avg", "exp_avg_sq"):
+            moment = state.get(key)
+            if not (
+                isinstance(moment, torch.Tensor)
+                and moment.shape == p.shape
+                and moment.dtype == torch.float32
+                and moment.device == p.device
+                and moment.is_contiguous()
+            ):
+                if isinstance(moment, torch.Tensor):
+                    layout = "" if moment.is_contiguous() else ", not contiguous"
+                    got = f"{moment.dtype} {list(moment.shape)} on {moment.device}{layout}"
+                else:
+                    got = "nothing" if moment is None else type(moment).__name__
+                raise ValueError(
+                    f"the Adam state {key!r} of a {list(p.shape)} parameter must be a contiguous float32 tensor "
+                    f"of its shape on {p.device}, got {got}"
+                )
+
+
+def _launches(parameters: list) -> list[list]:
+    """The parameters in order, grouped into launches of at most MAX_LAUNCH_VALUES values (one
+    launch unless the model is very large)."""
+    batches, total = [[]], 0
+    for entry in parameters:
+        if total + entry[1] > MAX_LAUNCH_VALUES:
+            batches.append([])
+            total = 0
+        batches[-1].append(entry)
+        total += entry[1]
+    return [batch for batch in batches if batch]
+
+
+def _on(device: torch.device, rows: list, dtype: torch.dtype) -> torch.Tensor:
+    """A small table on ``device``; on CUDA copied from pinned memory without waiting (torch's
+    pinned allocator keeps the host block until the copy has run)."""
+    if device.type != "cuda":
+        return torch.tensor(rows, dtype=dtype)
+    return torch.tensor(rows, dtype=dtype, pin_memory=True).to(device, non_blocking=True)
