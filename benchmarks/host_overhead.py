@@ -124,6 +124,9 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--reference-loss", action="store_true", help="kornia's SSIM and torch's L1")
+    parser.add_argument(
+        "--torch-adam", action="store_true", help="torch's fused Adam (one launch per group) instead of FusedAdam"
+    )
     parser.add_argument("--profile-out", default=None, help="also write the cProfile window's stats here")
     args = parser.parse_args(argv)
     # One intra-op thread: torch's parallel regions on a busy 2-core machine cost milliseconds

@@ -10,19 +10,22 @@ initial points replicated with jitter; resampled to the count (a random subset, 
 jitter of their own scale). The iteration counter is set to ``--at`` (20000: after densification,
 the steady state; 5001: during it, with the gradient statistics but no densification step inside
 the window). After ``--warmup`` steps, ``--steps`` steps are timed by the wall clock (a device
-synchronisation at both ends only: the step as the training runs it), then the same number under
-torch.profiler (CUPTI sees Warp's kernels as well as torch's). Each part of ``Trainer.train_step``
-is wrapped: a ``time.perf_counter`` clock during the wall-clock window (no synchronisation: the host
-time of the part, less the parts inside it) and a labelled range under the profiler (the GPU time of
-the kernels it launched). The render's read of its intersection count, where the host waits for the
-device, is a part of its own, so that "render forward" is the host's work alone.
+synchronisation at both ends only: the step as the training runs it), plainly and then with a clock
+around each part, then the same number under torch.profiler (CUPTI sees Warp's kernels as well as
+torch's). Each part of ``Trainer.train_step`` is wrapped: a ``time.perf_counter`` clock during the
+wall-clock window (no synchronisation: the host time of the part, less the parts inside it) and a
+labelled range under the profiler (the GPU time of the kernels it launched). The render's read of
+its intersection count, where the host waits for the device, is a part of its own, so that "render
+forward" is the host's work alone.
 
-Printed and written to ``--out``: ms per step (wall), the share of it the GPU is busy (the union of
-kernel intervals over the profiled window), kernels per step (Warp's and torch's), host
-synchronisations and device-to-host copies per step, GPU time per stage (by kernel name) and, per
-part of the step, host time and the GPU time of the kernels it launched; "rest of the step" is
-the wall time less the parts' host time: the trainer's own code, and where the GPU sets the pace,
-the wait for it at the window's end.
+Printed and written to ``--out``: ms per step (wall) with the part clocks and without them (the
+plain step, timed first), the share of the profiled window the GPU is busy (the union of kernel
+intervals; the profiler slows the host, so this share is low) and the kernel time over the plain
+step (the busy share of the step as training runs it: one stream runs the kernels in turn), kernels
+per step (Warp's and torch's), host synchronisations and device-to-host copies per step, GPU time
+per stage (by kernel name) and, per part of the step, host time and the GPU time of the kernels it
+launched; "rest of the step" is the wall time less the parts' host time: the trainer's own code, and
+where the GPU sets the pace, the wait for it at the window's end.
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ from cdcgs.io import read_ply
 from cdcgs.train import trainer as trainer_module
 from cdcgs.train.config import DataConfig, TrainConfig
 from cdcgs.train.model import GaussianModel
-from cdcgs.train.ops import make_optimizer
+from cdcgs.train.ops import make_optimizer, set_hyperparameters
 from cdcgs.train.trainer import Trainer
 
 # The parts of a step, in the order they run; each is a labelled range in the profile.
@@ -136,6 +139,12 @@ def prepared(args, count: int, out: str) -> Trainer:
     source = GaussianModel.from_ply(read_ply(args.ply), device=trainer.device) if args.ply else trainer.model
     trainer.model = resampled(source, count, generator)
     trainer.optimizer = make_optimizer(trainer.model, trainer.config.lr, trainer.scene.extent)
+    if args.torch_adam and trainer.config.optimizer == "selective":
+        raise SystemExit(f"--torch-adam: the {args.strategy} preset trains with selective Adam, which torch has not")
+    if args.torch_adam:  # the optimizer before FusedAdam: torch's fused Adam, one launch per group
+        groups = [{"params": g["params"], "name": g["name"]} for g in trainer.optimizer.param_groups]
+        trainer.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=trainer.device.type == "cuda")
+        set_hyperparameters(trainer.optimizer, trainer.config.lr, trainer.scene.extent)
     trainer.strategy_state = trainer.strategy.initialize_state(trainer.model)
     trainer.step = args.at - 1
     return trainer
@@ -193,6 +202,13 @@ def measure(args, count: int) -> dict:
         for _ in range(args.warmup):
             trainer.train_step()
         trainer.step = at  # the window sits at --at, not after the warm-up
+        sync()
+        start = time.perf_counter()
+        for _ in range(args.steps):  # the plain step: no part clocks, no profiler
+            trainer.train_step()
+        sync()
+        plain_ms = (time.perf_counter() - start) * 1e3 / args.steps
+        trainer.step = at
         with instrumented(trainer, PartClock()) as clock:
             sync()
             start = time.perf_counter()
@@ -210,6 +226,10 @@ def measure(args, count: int) -> dict:
                 sync()
         _, _, info = trainer._render(0)
         row = summarise(prof, args.steps, wall_ms, host_ms, trainer.model.num, info.num_intersections)
+        row["plain_ms_per_step"] = plain_ms
+        # One stream runs the kernels one after another: their sum over the plain step's time is
+        # the GPU's busy share when nothing measures the host.
+        row["kernel_share_of_plain_step"] = min(row["kernel_ms_per_step"] / plain_ms, 1.0)
         if args.complexity_views:
             row["complexity_pass"] = complexity_pass(trainer, args.complexity_views)
         return row
@@ -338,7 +358,9 @@ def print_report(rows: list[dict], machine: str) -> None:
 
     line("tile intersections (view 0)", [f"{r['intersections']:,}" for r in rows])
     line("ms per step (wall)", [f"{r['wall_ms_per_step']:.2f}" for r in rows])
-    line("GPU busy", [f"{100 * (r['gpu_busy_share'] or 0):.0f}%" for r in rows])
+    line("ms per step, plain (no clocks, no profiler)", [f"{r['plain_ms_per_step']:.2f}" for r in rows])
+    line("GPU busy (profiled window)", [f"{100 * (r['gpu_busy_share'] or 0):.0f}%" for r in rows])
+    line("kernel time / plain step", [f"{100 * r['kernel_share_of_plain_step']:.0f}%" for r in rows])
     line("kernel time (ms)", [f"{r['kernel_ms_per_step']:.2f}" for r in rows])
     line(
         "kernels: Warp / torch", [f"{r['warp_kernels_per_step']:.1f} / {r['torch_kernels_per_step']:.1f}" for r in rows]
@@ -381,6 +403,15 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--reference-loss", action="store_true", help="kornia's SSIM and torch's L1")
     parser.add_argument(
+        "--torch-adam", action="store_true", help="torch's fused Adam (one launch per group) instead of FusedAdam"
+    )
+    parser.add_argument(
+        "--sh-backward",
+        choices=("grouped", "staged"),
+        default=None,
+        help="the SH adjoint's CUDA kernel (cdcgs.render.SH_BACKWARD_CUDA; default: as it is)",
+    )
+    parser.add_argument(
         "--rectangles", action="store_true", help="bin each Gaussian into its whole rectangle (no exact footprints)"
     )
     parser.add_argument(
@@ -399,10 +430,13 @@ def main(argv=None) -> int:
 
     if args.rectangles:
         cdcgs.render.start_binning = rectangles
+    sh_backward = cdcgs.render.SH_BACKWARD_CUDA
+    cdcgs.render.SH_BACKWARD_CUDA = args.sh_backward or sh_backward
     try:
         rows = [measure(args, count) for count in args.gaussians]
     finally:
         cdcgs.render.start_binning = exact
+        cdcgs.render.SH_BACKWARD_CUDA = sh_backward
     machine = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
     print_report(rows, machine)
     if args.out:

@@ -55,6 +55,7 @@ STAGES = [
     ("sh colour backward", ("spherical_harmonics_bwd",)),
     ("projection backward", ("projection_ewa_3dgs_fused_bwd",)),
     ("loss (L1 + D-SSIM)", ("ssim_l1",)),
+    ("optimizer (Adam)", ("adam",)),  # ours (fused_adam_kernel) and torch's (FusedAdamMathFunctor)
 ]
 
 
@@ -271,7 +272,7 @@ def print_tables(rows: list[dict], machine: str) -> None:
             )
         staged = [r for r in raster.values() if "stages_ms" in r]
         if staged:
-            names = [s for s, _ in STAGES] + ["other (torch)"]
+            names = [s for s, _ in STAGES if any(s in r["stages_ms"] for r in staged)] + ["other (torch)"]
             print("\nGPU kernel time per forward+backward, ms (torch.profiler)\n")
             print("| stage | " + " | ".join(f"{r['renderer']} {r['n'] // 1000}k" for r in staged) + " |")
             print("|---|" + "---|" * len(staged))

@@ -1,7 +1,7 @@
 """Whole trainings one after another on one GPU, and their table written into the docs.
 
     python benchmarks/training_table.py --data ../shared/data/bonsai --images images --out runs \
-        [--runs 3dgs 3dgs-gsplat-rates cdc gsplat] [--iters 30000] [--docs docs/benchmarks.md]
+        [--runs 3dgs fast cdc gsplat] [--iters 30000] [--docs docs/benchmarks.md]
 
 Each run is its own process, started after the one before it ended, so that none of them shares
 the GPU or the host with another; each is preceded by a 20-iteration run of the same command into
@@ -11,7 +11,8 @@ counts the processes computing on its GPU every few seconds (``gpu_neighbours.js
 folder), and the table says which runs shared it (their times are not timings) or could not be
 checked (no nvidia-smi, or one that lists no process here). The runs:
 
-- ``3dgs``, ``cdc``, any other ``cdcgs train --strategy`` preset: ``cdcgs train`` with its defaults;
+- ``3dgs``, ``fast``, ``cdc``, any other ``cdcgs train --strategy`` preset: ``cdcgs train`` with
+  its defaults (the default runs: ``3dgs fast cdc gsplat``);
 - ``3dgs-gsplat-rates``: ``3dgs`` with gsplat's opacity learning rate and initial scales
   (``--lr-opacity-logits 0.05 --scale-rule 3dgs``), the row to set beside gsplat;
 - ``gsplat``: gsplat's DefaultStrategy through ``benchmarks/peers/gsplat_train.py`` (the same data,
@@ -43,7 +44,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 BEGIN, END = "<!-- training-table:begin -->", "<!-- training-table:end -->"
 GSPLAT_RATES = ["--lr-opacity-logits", "0.05", "--scale-rule", "3dgs"]
-DEFAULT_RUNS = ["3dgs", "3dgs-gsplat-rates", "cdc", "gsplat"]
+DEFAULT_RUNS = ["3dgs", "fast", "cdc", "gsplat"]  # issue 21's side by side
 NEIGHBOURS = "gpu_neighbours.json"  # in a run's folder: what the watch saw of the other processes on its GPU
 
 

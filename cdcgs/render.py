@@ -29,12 +29,14 @@ from .kernels._statistics import accumulate_statistics_kernel
 from .kernels.binning import BinningStart, TileBins, finish_binning, start_binning
 from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .kernels.projection import (
+    SH_BLOCK,
     Camera,
     make_camera,
     project_gaussians_kernel,
     sh_to_color_backward_kernel,
     sh_to_color_grouped_backward_kernel,
     sh_to_color_kernel,
+    sh_to_color_staged_backward_kernel,
 )
 
 __all__ = [
@@ -46,6 +48,12 @@ __all__ = [
     "rasterize",
     "start_bin_view",
 ]
+
+# The SH adjoint's kernel on CUDA: "grouped" (16 threads per Gaussian, half-warp shuffles) or
+# "staged" (the coefficients in shared memory, one thread per Gaussian). "staged" is not yet run on
+# a GPU: benchmarks/profile_step.py --sh-backward staged times it, and its test compares it with
+# the per-Gaussian kernel, before it may become the default.
+SH_BACKWARD_CUDA = "grouped"
 
 
 @dataclass
@@ -344,26 +352,35 @@ class _ShColor(torch.autograd.Function):
         grad_sh = torch.empty_like(sh)
         grad_sh_rest = None if sh_rest is None else torch.empty_like(sh_rest)
         grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
-        grouped = means.device.type == "cuda"  # one thread per SH coefficient (half-warp shuffles)
+        cuda = means.device.type == "cuda"
+        n = means.shape[0]
+        staged = (
+            cuda and SH_BACKWARD_CUDA == "staged" and sh_rest is not None and sh_rest.shape[1] < MAX_SH_COEFFICIENTS
+        )
+        if staged:  # shared memory, one thread per Gaussian; the higher coefficients as flat floats
+            kernel, dim, block = sh_to_color_staged_backward_kernel, -(-n // SH_BLOCK) * SH_BLOCK, SH_BLOCK
+            rest, grad_rest = _arg(sh_rest.view(-1), wp.float32), _arg(grad_sh_rest.view(-1), wp.float32)
+        else:  # CUDA: one thread per SH coefficient (half-warp shuffles); CPU: one per Gaussian
+            kernel = sh_to_color_grouped_backward_kernel if cuda else sh_to_color_backward_kernel
+            dim, block = n * (MAX_SH_COEFFICIENTS if cuda else 1), None
+            rest = None if sh_rest is None else _arg(sh_rest, wp.vec3)
+            grad_rest = None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3)
         with _warp_scope(means.device):
             _launch(
-                sh_to_color_grouped_backward_kernel if grouped else sh_to_color_backward_kernel,
-                means.shape[0] * (MAX_SH_COEFFICIENTS if grouped else 1),
+                kernel,
+                dim,
                 inputs=[
                     _arg(means, wp.vec3),
                     _arg(sh, wp.vec3),
-                    None if sh_rest is None else _arg(sh_rest, wp.vec3),
+                    rest,
                     ctx.sh_degree,
                     ctx.camera_center,
                     _arg(radii, wp.vec2i),
                     _arg(colors, wp.vec3),
                     _arg(grad_colors, wp.vec3),
                 ],
-                outputs=[
-                    _arg(grad_means, wp.vec3),
-                    _arg(grad_sh, wp.vec3),
-                    None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3),
-                ],
+                outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3), grad_rest],
+                block_dim=block,
             )
         return grad_means, grad_sh, grad_sh_rest, None, None, None, None
 

@@ -160,18 +160,20 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
 
 
 def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
-    """On CUDA ``rasterize`` runs the SH adjoint with 16 threads per Gaussian (half-warp sums); it
-    must give what the per-Gaussian kernel gives, at every degree, with as many coefficients stored
-    as the degree needs or all 16, and with culled Gaussians."""
+    """On CUDA ``rasterize`` runs the SH adjoint with 16 threads per Gaussian (half-warp sums), or
+    with the coefficients staged in shared memory (``SH_BACKWARD_CUDA = "staged"``, two arrays only);
+    each must give what the per-Gaussian kernel gives, at every degree, with as many coefficients
+    stored as the degree needs or all 16, with culled Gaussians and a last block that is not full."""
     if device != "cuda":
         pytest.skip("the grouped SH adjoint uses warp shuffles: CUDA only")
     import warp as wp
 
     from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel, sh_to_color_kernel
     from cdcgs.kernels._constants import MAX_SH_COEFFICIENTS
+    from cdcgs.kernels.projection import SH_BLOCK, sh_to_color_staged_backward_kernel
 
     rng = np.random.default_rng(1)
-    n = 77  # odd: the last warp holds one Gaussian
+    n = 2 * SH_BLOCK + 33  # the last warp holds one Gaussian, the last block 33
     culled = np.arange(n) % 7 == 3
     radii = wp.array(
         np.repeat(np.where(culled, 0, 2)[:, None], 2, axis=1).astype(np.int32), dtype=wp.vec2i, device=device
@@ -214,10 +216,26 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
                     wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_dc, grad_rest], device=device)
                     both = np.concatenate([grad_dc.numpy(), grad_rest.numpy()], axis=1)
                     outputs[name + " split"] = (grads.numpy(), both)
+            if stored > 1:  # the staged kernel: flat higher coefficients, a launch of whole blocks
+                dc = wp.array(coefficients[:, :1].copy(), dtype=wp.vec3, device=device)
+                rest = wp.array(coefficients[:, 1:].reshape(-1).copy(), dtype=float, device=device)
+                grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
+                grad_dc = wp.full((n, 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
+                grad_rest = wp.full(n * (stored - 1) * 3, 7.0, dtype=float, device=device)
+                wp.launch(
+                    sh_to_color_staged_backward_kernel,
+                    -(-n // SH_BLOCK) * SH_BLOCK,
+                    inputs=[means, dc, rest, degree, center, radii, colors, grad_colors],
+                    outputs=[grads, grad_dc, grad_rest],
+                    block_dim=SH_BLOCK,
+                    device=device,
+                )
+                both = np.concatenate([grad_dc.numpy(), grad_rest.numpy().reshape(n, stored - 1, 3)], axis=1)
+                outputs["staged split"] = (grads.numpy(), both)
             for ours, theirs in zip(outputs["grouped"], outputs["per gaussian"]):
                 assert (theirs != 7.0).all()  # every entry written
                 np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=1e-4)
-            for name in ("grouped split", "per gaussian split"):
+            for name in ("grouped split", "per gaussian split", "staged split"):
                 for ours, theirs in zip(outputs.get(name, ()), outputs["per gaussian"]):
                     assert (ours != 7.0).all()
                     np.testing.assert_allclose(ours, theirs, atol=1e-5, rtol=1e-4)

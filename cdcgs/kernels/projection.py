@@ -12,16 +12,18 @@ Tests check both against a float64 reference.
 import warp as wp
 
 from ._constants import MAX_SH_COEFFICIENTS, SH_C0, SH_C1, SH_C2, SH_C3
-from ._lanes import GROUP_SIZE, group_read
+from ._lanes import GROUP_SIZE, block_sync, group_read
 
 __all__ = [
     "ALPHA_THRESHOLD",
+    "SH_BLOCK",
     "Camera",
     "make_camera",
     "project_gaussians_kernel",
     "sh_to_color_backward_kernel",
     "sh_to_color_grouped_backward_kernel",
     "sh_to_color_kernel",
+    "sh_to_color_staged_backward_kernel",
 ]
 
 # CUDA: --use_fast_math (approximate exp, division and square root, as gsplat builds its kernels);
@@ -417,6 +419,17 @@ def sh_basis_vjp(d: wp.vec3, w: sh_vector, degree: int):
 
 
 @wp.func
+def sh_mean_gradient(v: wp.vec3, d: wp.vec3, w: sh_vector, degree: int):
+    """The gradient of a Gaussian's mean through the view direction d = v / |v| of its colour, given
+    ``w``, the colour gradient's dot product with each coefficient (0 at degree 0)."""
+    if degree == 0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    grad_d = sh_basis_vjp(d, w, degree)
+    # d = v / |v|: the Jacobian is (I - d d^T) / |v|
+    return (grad_d - d * wp.dot(d, grad_d)) / wp.length(v)
+
+
+@wp.func
 def clamp_gradient(color: wp.vec3, grad: wp.vec3):
     """The gradient through colour = max(raw, 0): it passes where the colour is positive (raw > 0)."""
     return wp.vec3(
@@ -468,12 +481,7 @@ def sh_to_color_backward_kernel(
             store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
     for j in range(MAX_SH_COEFFICIENTS, stored):
         store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
-    grad_mean = wp.vec3(0.0, 0.0, 0.0)
-    if sh_degree > 0:
-        grad_d = sh_basis_vjp(d, w, sh_degree)
-        # d = v / |v|: the Jacobian is (I - d d^T) / |v|
-        grad_mean = (grad_d - d * wp.dot(d, grad_d)) / wp.length(v)
-    grad_means_out[i] = grad_mean
+    grad_means_out[i] = sh_mean_gradient(v, d, w, sh_degree)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -539,8 +547,118 @@ def sh_to_color_grouped_backward_kernel(
     for k in range(MAX_SH_COEFFICIENTS):
         w[k] = group_read(w_j, k)
     if j == 0:
-        grad_mean = zero
-        if sh_degree > 0:
-            grad_d = sh_basis_vjp(d, w, sh_degree)
-            grad_mean = (grad_d - d * wp.dot(d, grad_d)) / wp.length(v)
-        grad_means_out[i] = grad_mean
+        grad_means_out[i] = sh_mean_gradient(v, d, w, sh_degree)
+
+
+# ------------------------------------------------------------------------------------------------
+# The SH adjoint for CUDA with the coefficients staged in shared memory, one thread per Gaussian:
+# a block of SH_BLOCK threads copies its Gaussians' higher coefficients (``gauss_sh_rest``, read
+# as flat floats) into shared memory with coalesced loads, each thread then computes its Gaussian's
+# basis once and swaps its coefficients for their gradients in place, and the block copies the
+# gradients out with coalesced stores. The grouped kernel above computes every Gaussian's basis and
+# shuffles 16 times, once per coefficient thread: it is bound by instructions, not by memory.
+# Launch with dim = N rounded up to a multiple of SH_BLOCK and block_dim = SH_BLOCK (every thread
+# reaches the block's barriers). CUDA only, two arrays only (``gauss_sh`` [N, 1], ``gauss_sh_rest``
+# [N, K - 1], K <= MAX_SH_COEFFICIENTS).
+
+SH_BLOCK = 128
+SH_STAGE_FLOATS = SH_BLOCK * 3 * (MAX_SH_COEFFICIENTS - 1)  # 22.5 KiB of shared memory a block
+SH_STAGE_STORE = wp.constant(0)
+SH_STAGE_LOAD = wp.constant(1)
+
+
+@wp.func_native(
+    f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ float stage[{SH_STAGE_FLOATS}];
+    if (op == {SH_STAGE_STORE}) {{ stage[index] = value; return value; }}
+    return stage[index];
+#else
+    return value;
+#endif
+"""
+)
+def sh_stage(op: int, index: int, value: float) -> float:
+    """The block's shared float array (CUDA only): SH_STAGE_STORE ``value`` at ``index`` (returns
+    it) or SH_STAGE_LOAD ``index``. A Gaussian's floats start at its lane times the floats a
+    Gaussian stores, an odd stride for degree 3 (45): the lanes of a warp hit distinct banks."""
+    ...
+
+
+@wp.func
+def sh_stage_vec3(slot: int):
+    return wp.vec3(
+        sh_stage(SH_STAGE_LOAD, slot, 0.0),
+        sh_stage(SH_STAGE_LOAD, slot + 1, 0.0),
+        sh_stage(SH_STAGE_LOAD, slot + 2, 0.0),
+    )
+
+
+@wp.func
+def sh_stage_store_vec3(slot: int, value: wp.vec3):
+    sh_stage(SH_STAGE_STORE, slot, value[0])
+    sh_stage(SH_STAGE_STORE, slot + 1, value[1])
+    sh_stage(SH_STAGE_STORE, slot + 2, value[2])
+
+
+@wp.kernel(enable_backward=False)
+def sh_to_color_staged_backward_kernel(
+    gauss_means: wp.array(dtype=wp.vec3),
+    gauss_sh: wp.array2d(dtype=wp.vec3),
+    gauss_sh_rest: wp.array(dtype=float),
+    sh_degree: int,
+    camera_center: wp.vec3,
+    radii: wp.array(dtype=wp.vec2i),
+    colors: wp.array(dtype=wp.vec3),
+    grad_colors: wp.array(dtype=wp.vec3),
+    grad_means_out: wp.array(dtype=wp.vec3),
+    grad_sh_out: wp.array2d(dtype=wp.vec3),
+    grad_sh_rest_out: wp.array(dtype=float),
+):
+    """``sh_to_color_backward_kernel`` with ``gauss_sh_rest`` and its gradient as flat float arrays
+    (N * 3 * (K - 1)), staged in shared memory (dim N rounded up to SH_BLOCK, block_dim SH_BLOCK,
+    CUDA only)."""
+    t = wp.tid()
+    lane = t % SH_BLOCK
+    n = gauss_means.shape[0]
+    row = gauss_sh_rest.shape[0] // wp.max(n, 1)  # floats per Gaussian: 3 (K - 1)
+    start = (t - lane) * row
+    end = wp.min(n * row, start + SH_BLOCK * row)
+    for k in range(start + lane, end, SH_BLOCK):  # the block's rows, coalesced
+        sh_stage(SH_STAGE_STORE, k - start, gauss_sh_rest[k])
+    block_sync()
+    if t < n:
+        zero = wp.vec3(0.0, 0.0, 0.0)
+        own = lane * row
+        stored = 1 + row // 3
+        culled = int(0)
+        if radii.shape[0] > 0:
+            if radii[t][0] <= 0:
+                culled = 1
+        if culled == 1:
+            grad_sh_out[t, 0] = zero
+            for k in range(row):
+                sh_stage(SH_STAGE_STORE, own + k, 0.0)
+            grad_means_out[t] = zero
+        else:
+            v = gauss_means[t] - camera_center
+            d = wp.normalize(v)
+            basis = sh_basis(d, sh_degree)
+            count = (sh_degree + 1) * (sh_degree + 1)
+            g = clamp_gradient(colors[t], grad_colors[t])
+            w = sh_vector()
+            grad_sh_out[t, 0] = basis[0] * g
+            w[0] = wp.dot(gauss_sh[t, 0], g)
+            # A constant count (16): unrolled, every vector index a constant (registers, not local memory).
+            for j in range(1, MAX_SH_COEFFICIENTS):
+                if j < stored:
+                    slot = own + 3 * (j - 1)
+                    if j < count:
+                        w[j] = wp.dot(sh_stage_vec3(slot), g)
+                        sh_stage_store_vec3(slot, basis[j] * g)
+                    else:
+                        sh_stage_store_vec3(slot, zero)
+            grad_means_out[t] = sh_mean_gradient(v, d, w, sh_degree)
+    block_sync()
+    for k in range(start + lane, end, SH_BLOCK):
+        grad_sh_rest_out[k] = sh_stage(SH_STAGE_LOAD, k - start, 0.0)
