@@ -616,8 +616,9 @@ def sh_to_color_staged_backward_kernel(
     grad_sh_rest_out: wp.array(dtype=float),
 ):
     """``sh_to_color_backward_kernel`` with ``gauss_sh_rest`` and its gradient as flat float arrays
-    (N * 3 * (K - 1)), staged in shared memory (dim N rounded up to SH_BLOCK, block_dim SH_BLOCK,
-    CUDA only)."""
+    (N * 3 * (K - 1)), staged in shared memory, CUDA only. Launch with dim N rounded up to a
+    multiple of SH_BLOCK and block_dim exactly SH_BLOCK: a thread's slot is its id modulo SH_BLOCK,
+    so a larger block would put two threads on one slot."""
     t = wp.tid()
     lane = t % SH_BLOCK
     n = gauss_means.shape[0]
@@ -662,3 +663,4 @@ def sh_to_color_staged_backward_kernel(
     block_sync()
     for k in range(start + lane, end, SH_BLOCK):
         grad_sh_rest_out[k] = sh_stage(SH_STAGE_LOAD, k - start, 0.0)
+    block_sync()  # a capped grid runs a block again: its next copy-in must wait for this copy-out
