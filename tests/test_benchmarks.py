@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -463,6 +464,50 @@ def test_visible_share_by_hand(tmp_path, capsys):
     assert "random views see" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         visible_share.main(["--data", str(scene), "--batch", "99"])
+
+
+def test_process_poses_finds_the_view_that_moved(tmp_path, capsys):
+    """A reference set of cameras and the same set carried into another frame by a similarity, one
+    centre moved by 20% of the spread: without the move everything agrees after the alignment,
+    with it that view stands out; with two trainings' per-view PSNR, the view that loses the most is listed with it."""
+    import process_poses
+
+    from cdcgs.geometry import quat_to_rotation
+
+    g = torch.Generator().manual_seed(1)
+    reference = {}
+    for k in range(12):
+        angle = 2 * math.pi * k / 12
+        centre = torch.tensor([3 * math.cos(angle), 3 * math.sin(angle), 0.5], dtype=torch.float64)
+        reference[f"v{k:02d}"] = (centre, quat_to_rotation(torch.randn(4, generator=g, dtype=torch.float64)))
+    rotation = quat_to_rotation(torch.tensor([0.9, 0.1, -0.3, 0.2], dtype=torch.float64))
+    scale, shift = 0.4, torch.tensor([5.0, -1.0, 2.0], dtype=torch.float64)
+    processed = {  # the reference frame is rotation @ (s x) + shift of the processed one
+        name: (rotation.T @ (centre - shift) / scale, w2c @ rotation) for name, (centre, w2c) in reference.items()
+    }
+    exact = process_poses.compare(reference, processed)
+    # 1e-4: the arccos of a rotation error near 0 loses about half the digits
+    assert max(max(e) for e in exact.values()) < 1e-4, "centres and rotations agree up to the similarity"
+    spread = 3.0  # the reference centres' largest distance from their mean (a circle of radius 3)
+    moved = processed["v03"][0] + torch.tensor([0.2 * spread / scale, 0.0, 0.0], dtype=torch.float64)
+    processed["v03"] = (moved, processed["v03"][1])
+    errors = process_poses.compare(reference, processed)
+    others = max(e[0] for n, e in errors.items() if n != "v03")  # least squares spreads a little of it
+    assert errors["v03"][0] > 0.12 and errors["v03"][0] > 4 * others
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=100)
+    names = sorted(process_poses.poses(str(scene)))
+    runs = []
+    for k, psnr in enumerate(([30.0] * 6, [29.5] * 5 + [20.0])):
+        run = tmp_path / f"run{k}"
+        run.mkdir()
+        per_view = [{"name": n, "psnr": p} for n, p in zip(names, psnr)]
+        (run / "metrics.json").write_text(json.dumps({"per_view": per_view}))
+        runs.append(str(run))
+    assert process_poses.main(["--reference", str(scene), "--processed", str(scene), "--runs", *runs]) == 0
+    out = capsys.readouterr().out
+    assert "6 views in both models" in out and "median 0.00" in out
+    assert f"| {names[-1]} | 30.00 | 20.00 | 10.00 | 0.0% |" in out, "the worst view first"
+    assert "mean PSNR loss 2.08 dB" in out  # (5 x 0.5 + 10) / 6
 
 
 def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):

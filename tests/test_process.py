@@ -7,11 +7,13 @@ import re
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 from scenes import textured_room_views
 
 from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError, OptionError
+from cdcgs.geometry import quat_to_rotation, similarity_transform
 from cdcgs.io import load_scene
 from cdcgs.process import ProcessOptions, process
 
@@ -28,19 +30,6 @@ def room(tmp_path_factory):
     return folder, images, poses
 
 
-def similarity_align(source: np.ndarray, target: np.ndarray):
-    """(s, R, t) minimising |s R source + t - target| (Umeyama 1991), points as rows."""
-    mu_s, mu_t = source.mean(0), target.mean(0)
-    a, b = source - mu_s, target - mu_t
-    u, d, vt = np.linalg.svd(b.T @ a / len(a))
-    sign = np.ones(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sign[-1] = -1
-    rotation = u @ np.diag(sign) @ vt
-    scale = (d * sign).sum() / a.var(0).sum()
-    return scale, rotation, mu_t - scale * rotation @ mu_s
-
-
 def pose_errors(scene_dir, names_to_truth: dict):
     """(max rotation error in degrees, RMS centre error / camera spread) of the processed model
     against the true poses, after the best similarity between the two sets of centres."""
@@ -53,7 +42,8 @@ def pose_errors(scene_dir, names_to_truth: dict):
         truth.append(-w2c_true[:3, :3].T @ w2c_true[:3, 3])
         rotations.append((w2c[:3, :3], w2c_true[:3, :3]))
     estimated, truth = np.array(estimated), np.array(truth)
-    scale, align, shift = similarity_align(estimated, truth)
+    scale, align, shift = similarity_transform(torch.from_numpy(estimated), torch.from_numpy(truth))
+    align, shift = align.numpy(), shift.numpy()
     spread = np.linalg.norm(truth - truth.mean(0), axis=1).max()
     offsets = np.linalg.norm(scale * estimated @ align.T + shift - truth, axis=1)
     centre_error = np.sqrt((offsets**2).mean()) / spread  # root mean square over the cameras
@@ -63,6 +53,24 @@ def pose_errors(scene_dir, names_to_truth: dict):
         relative = (align @ r_est.T).T @ r_true.T
         angles.append(np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1))))
     return max(angles), centre_error, len(scene.train)
+
+
+def test_similarity_transform_recovers_a_known_one():
+    """The alignment the pose checks rely on: a known scale, rotation and shift are recovered, and a
+    mirrored set gets a rotation (determinant +1), not a reflection."""
+    g = torch.Generator().manual_seed(0)
+    source = torch.randn(30, 3, generator=g, dtype=torch.float64)
+    rotation = quat_to_rotation(torch.randn(4, generator=g, dtype=torch.float64))
+    shift = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    scale, found, moved = similarity_transform(source, 2.5 * source @ rotation.T + shift)
+    assert abs(scale - 2.5) < 1e-12
+    torch.testing.assert_close(found, rotation, rtol=0, atol=1e-12)
+    torch.testing.assert_close(moved, shift, rtol=0, atol=1e-12)
+    mirrored = source * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)
+    _, found, _ = similarity_transform(source, mirrored)
+    assert abs(torch.det(found).item() - 1.0) < 1e-12
+    with pytest.raises(ValueError, match=r"two \[K, 3\] point sets"):
+        similarity_transform(source[:2], mirrored[:2])
 
 
 def test_photos_give_the_true_poses(room, tmp_path):
