@@ -82,6 +82,8 @@ def main(argv=None) -> int:
     if args.runs:
         reference, processed = (per_view_psnr(run) for run in args.runs)
         names = sorted(set(reference) & set(processed) & set(errors))
+        if not names:
+            raise SystemExit("--runs: the two runs share no test view that both models hold")
         loss = {n: reference[n] - processed[n] for n in names}
         mean = sum(loss.values()) / len(loss)
         print(

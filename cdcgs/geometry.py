@@ -35,6 +35,9 @@ def similarity_transform(source: torch.Tensor, target: torch.Tensor) -> tuple[fl
     a, b = source.double(), target.double()
     mean_a, mean_b = a.mean(0), b.mean(0)
     a, b = a - mean_a, b - mean_b
+    spread = torch.linalg.svdvals(a)
+    if spread[1] <= 1e-9 * max(float(spread[0]), 1e-300):
+        raise ValueError("similarity_transform: the source points coincide or lie on one line (no unique rotation)")
     u, d, vt = torch.linalg.svd(b.T @ a / len(a))
     sign = torch.ones(3, dtype=torch.float64, device=a.device)
     if torch.det(u) * torch.det(vt) < 0:

@@ -491,7 +491,10 @@ def test_process_poses_finds_the_view_that_moved(tmp_path, capsys):
     spread = 3.0  # the reference centres' largest distance from their mean (a circle of radius 3)
     moved = processed["v03"][0] + torch.tensor([0.2 * spread / scale, 0.0, 0.0], dtype=torch.float64)
     processed["v03"] = (moved, processed["v03"][1])
+    turn = quat_to_rotation(torch.tensor([math.cos(0.05), 0.0, 0.0, math.sin(0.05)], dtype=torch.float64))
+    processed["v07"] = (processed["v07"][0], turn @ processed["v07"][1])  # the camera turned by 0.1 rad
     errors = process_poses.compare(reference, processed)
+    assert errors["v07"][1] == pytest.approx(math.degrees(0.1), abs=0.5), "a turned camera's rotation error"
     others = max(e[0] for n, e in errors.items() if n != "v03")  # least squares spreads a little of it
     assert errors["v03"][0] > 0.12 and errors["v03"][0] > 4 * others
     scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=100)

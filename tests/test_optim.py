@@ -309,3 +309,26 @@ def test_a_model_too_large_for_one_launch_takes_several(monkeypatch):
     assert one[0] == [590] and several[0] == [140, 450], "sizes of the launches: all 590 values, then split"
     for a, b in zip(one[1], several[1]):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ({"lr": None}, "a learning rate >= 0 for every group, got None"),
+        ({"lr": -0.1}, "a learning rate >= 0"),
+        ({"eps": -1e-8}, "eps >= 0"),
+        ({"betas": (0.9, 1.0)}, r"two betas in \[0, 1\)"),
+    ],
+)
+def test_bad_rates_are_refused_before_any_state_changes(setting, message):
+    """A group's rate left unset (as set_hyperparameters leaves the opacity rate for its caller) or
+    out of range is refused before a state is created or a step counted: the next step's bias
+    correction would otherwise be off."""
+    first = torch.randn(5, 3, requires_grad=True)
+    p = torch.randn(5, 2, requires_grad=True)
+    first.grad, p.grad = torch.ones(5, 3), torch.ones(5, 2)
+    optimizer = FusedAdam([{"params": [first]}, {"params": [p]}], lr=0.1)
+    optimizer.param_groups[1].update(setting)
+    with pytest.raises(ValueError, match=message):
+        optimizer.step()
+    assert not optimizer.state, "no state was created, no step counted"

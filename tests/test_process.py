@@ -71,6 +71,9 @@ def test_similarity_transform_recovers_a_known_one():
     assert abs(torch.det(found).item() - 1.0) < 1e-12
     with pytest.raises(ValueError, match=r"two \[K, 3\] point sets"):
         similarity_transform(source[:2], mirrored[:2])
+    line = torch.linspace(0, 1, 5, dtype=torch.float64)[:, None] * torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="coincide or lie on one line"):
+        similarity_transform(line, line)
 
 
 def test_photos_give_the_true_poses(room, tmp_path):

@@ -64,13 +64,14 @@ class FusedAdam(torch.optim.Optimizer):
             grad = p.grad.contiguous()
             held.append(grad)
             rows = p.shape[0] if p.dim() else 1
+            beta1, beta2 = float(beta1), float(beta2)
             rates = [
-                group["lr"],
+                float(group["lr"]),
                 beta1,
                 beta2,
                 1.0 - beta1,  # in double precision, as torch passes it
                 1.0 - beta2,
-                group["eps"],
+                float(group["eps"]),
                 1.0 - beta1**t,
                 math.sqrt(1.0 - beta2**t),
             ]
@@ -131,6 +132,17 @@ def _check(group: dict, p: torch.Tensor, state: dict | None, device: torch.devic
             f"selected must be a bool [{p.shape[0]}] mask (one entry per row of the parameter), "
             f"got {selected.dtype} {list(selected.shape)}"
         )
+    lr, eps, betas = group.get("lr"), group.get("eps"), group.get("betas")
+    if not _number(lr) or float(lr) < 0.0:
+        raise ValueError(f"FusedAdam needs a learning rate >= 0 for every group, got {lr!r}")
+    if not _number(eps) or float(eps) < 0.0:
+        raise ValueError(f"FusedAdam needs eps >= 0 for every group, got {eps!r}")
+    if not (
+        isinstance(betas, (tuple, list))
+        and len(betas) == 2
+        and all(_number(b) and 0.0 <= float(b) < 1.0 for b in betas)
+    ):
+        raise ValueError(f"FusedAdam needs two betas in [0, 1) for every group, got {betas!r}")
     for key in ("amsgrad", "weight_decay", "maximize"):
         if group.get(key):  # a state loaded from torch's Adam carries its options
             raise ValueError(f"FusedAdam is Adam without {key}, but a parameter group sets {key}={group[key]!r}")
@@ -155,6 +167,13 @@ def _check(group: dict, p: torch.Tensor, state: dict | None, device: torch.devic
                     f"the Adam state {key!r} of a {list(p.shape)} parameter must be a contiguous float32 tensor "
                     f"of its shape on {p.device}, got {got}"
                 )
+
+
+def _number(value) -> bool:
+    """A float, an int or a one-value tensor (torch allows a tensor learning rate), not a bool."""
+    if isinstance(value, torch.Tensor):
+        return value.numel() == 1
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _launches(parameters: list) -> list[list]:
