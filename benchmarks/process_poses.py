@@ -7,14 +7,18 @@ photos, and, given a training of each, where the test PSNR is lost.
 The camera centres of the views the two models share (by image name) are mapped onto the
 reference's by the best similarity (``cdcgs.geometry.similarity_transform``); printed: the centre
 errors as a share of the reference cameras' spread (the largest distance from their mean), the
-rotation errors after the same alignment, and with ``--runs`` (two ``cdcgs train`` folders, their
+rotation errors after the same alignment, the breaks (consecutive views by name whose step
+between camera centres points elsewhere, or is of another length, than the reference's: where a
+model's parts were placed apart), and with ``--runs`` (two ``cdcgs train`` folders, their
 metrics.json with per-view test results) the views that lose the most PSNR, with their pose errors.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import math
 import os
 import sys
 
@@ -54,6 +58,38 @@ def compare(reference: dict, processed: dict) -> dict[str, tuple[float, float]]:
     return out
 
 
+def breaks(reference: dict, processed: dict, angle: float = 20.0, factor: float = 2.0) -> list[tuple]:
+    """(name, next name, direction error in degrees, length ratio over the median ratio) of each
+    pair of consecutive shared views (sorted by name) whose step between centres, turned into the
+    reference frame by the rotation the two models' camera rotations agree on, differs from the
+    reference's step by more than ``angle`` degrees or ``factor`` in length. Photos taken in
+    sequence, named in order, give steps that agree everywhere but where the model broke."""
+    names = sorted(set(reference) & set(processed))
+    # R_ref = R_proc W^T for a model turned by W: W is the mean of R_ref^T R_proc, made a rotation.
+    mean = torch.stack([reference[n][1].T @ processed[n][1] for n in names]).mean(0)
+    u, _, vt = torch.linalg.svd(mean)
+    turn = u @ vt
+    steps = []
+    for first, second in itertools.pairwise(names):
+        ours = turn @ (processed[second][0] - processed[first][0])
+        theirs = reference[second][0] - reference[first][0]
+        cosine = float(ours @ theirs / (ours.norm() * theirs.norm()).clamp_min(1e-12))
+        steps.append(
+            (
+                first,
+                second,
+                math.degrees(math.acos(max(-1.0, min(1.0, cosine)))),
+                float(ours.norm() / theirs.norm().clamp_min(1e-12)),
+            )
+        )
+    median = float(torch.tensor([s[3] for s in steps]).median()) if steps else 1.0
+    return [
+        (first, second, error, ratio / median)
+        for first, second, error, ratio in steps
+        if error > angle or not 1.0 / factor <= ratio / median <= factor
+    ]
+
+
 def per_view_psnr(run: str) -> dict[str, float]:
     path = os.path.join(run, "metrics.json")
     if not os.path.isfile(path):
@@ -69,7 +105,8 @@ def main(argv=None) -> int:
     parser.add_argument("--runs", nargs=2, metavar=("REFERENCE_RUN", "PROCESSED_RUN"), help="trainings of each")
     parser.add_argument("--worst", type=int, default=7, help="views listed with --runs")
     args = parser.parse_args(argv)
-    errors = compare(poses(args.reference), poses(args.processed))
+    reference_poses, processed_poses = poses(args.reference), poses(args.processed)
+    errors = compare(reference_poses, processed_poses)
     centre = torch.tensor([e[0] for e in errors.values()]) * 100
     angle = torch.tensor([e[1] for e in errors.values()])
     print(f"{len(errors)} views in both models")
@@ -79,6 +116,10 @@ def main(argv=None) -> int:
         f"max {centre.max():.2f}; over 5%: {int((centre > 5).sum())} views"
     )
     print(f"rotation error, degrees: median {angle.median():.2f}, mean {angle.mean():.2f}, max {angle.max():.2f}")
+    found = breaks(reference_poses, processed_poses)
+    print(f"breaks between consecutive views (step off by > 20 degrees or 2x in length): {len(found)}")
+    for first, second, error, ratio in found:
+        print(f"  {first} -> {second}: direction {error:.1f} degrees off, length {ratio:.2f}x")
     if args.runs:
         reference, processed = (per_view_psnr(run) for run in args.runs)
         names = sorted(set(reference) & set(processed) & set(errors))

@@ -468,8 +468,8 @@ def test_visible_share_by_hand(tmp_path, capsys):
 
 def test_process_poses_finds_the_view_that_moved(tmp_path, capsys):
     """A reference set of cameras and the same set carried into another frame by a similarity, one
-    centre moved by 20% of the spread: without the move everything agrees after the alignment,
-    with it that view stands out; with two trainings' per-view PSNR, the view that loses the most is listed with it."""
+    centre moved outward by half the spread: without the move everything agrees after the alignment,
+    with it that view stands out and the steps to and from it are the breaks; with two trainings' per-view PSNR, the view that loses the most is listed with it."""
     import process_poses
 
     from cdcgs.geometry import quat_to_rotation
@@ -488,15 +488,18 @@ def test_process_poses_finds_the_view_that_moved(tmp_path, capsys):
     exact = process_poses.compare(reference, processed)
     # 1e-4: the arccos of a rotation error near 0 loses about half the digits
     assert max(max(e) for e in exact.values()) < 1e-4, "centres and rotations agree up to the similarity"
-    spread = 3.0  # the reference centres' largest distance from their mean (a circle of radius 3)
-    moved = processed["v03"][0] + torch.tensor([0.2 * spread / scale, 0.0, 0.0], dtype=torch.float64)
-    processed["v03"] = (moved, processed["v03"][1])
+    assert process_poses.breaks(reference, processed) == []
     turn = quat_to_rotation(torch.tensor([math.cos(0.05), 0.0, 0.0, math.sin(0.05)], dtype=torch.float64))
-    processed["v07"] = (processed["v07"][0], turn @ processed["v07"][1])  # the camera turned by 0.1 rad
+    turned = dict(processed, v07=(processed["v07"][0], turn @ processed["v07"][1]))  # turned by 0.1 rad
+    assert process_poses.compare(reference, turned)["v07"][1] == pytest.approx(math.degrees(0.1), abs=0.01)
+    spread = 3.0  # the reference centres' largest distance from their mean (a circle of radius 3)
+    outward = reference["v03"][0] + torch.tensor([0.0, 0.5 * spread, 0.0], dtype=torch.float64)  # v03 is at +y
+    processed["v03"] = (rotation.T @ (outward - shift) / scale, processed["v03"][1])
     errors = process_poses.compare(reference, processed)
-    assert errors["v07"][1] == pytest.approx(math.degrees(0.1), abs=0.5), "a turned camera's rotation error"
     others = max(e[0] for n, e in errors.items() if n != "v03")  # least squares spreads a little of it
-    assert errors["v03"][0] > 0.12 and errors["v03"][0] > 4 * others
+    assert errors["v03"][0] > 0.3 and errors["v03"][0] > 3 * others
+    found = process_poses.breaks(reference, processed)
+    assert [(a, b) for a, b, _, _ in found] == [("v02", "v03"), ("v03", "v04")], "the steps to and from v03"
     scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=100)
     names = sorted(process_poses.poses(str(scene)))
     runs = []
