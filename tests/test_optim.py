@@ -128,7 +128,7 @@ def test_every_group_in_one_launch_is_torch_adam(device, monkeypatch):
 
 
 def test_the_fused_kernel_from_plain_warp(device):
-    """``fused_adam_kernel`` launched with Warp arrays and its three tables, no torch: two
+    """``fused_adam_kernel`` launched with Warp arrays and its two tables, no torch: two
     parameters of different widths, a row mask, against Adam in float64 written out with numpy."""
     wp_device = device  # "cpu" or "cuda", as Warp names them
     rng = np.random.default_rng(6)
@@ -141,17 +141,14 @@ def test_the_fused_kernel_from_plain_warp(device):
     arrays = [[wp.array(x[k], dtype=float, device=wp_device) for x in (values, grads, m0, v0)] for k in range(2)]
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     bc1, bc2 = 1 - beta1**step, 1 - beta2**step
-    addresses = wp.array([[a.ptr for a in arrays[k]] for k in range(2)], dtype=wp.int64, device=wp_device)
-    layout = wp.array(
-        [[0, rows * widths[0], widths[0]], [rows * widths[0], rows * widths[1], widths[1]]],
-        dtype=wp.int32,
-        device=wp_device,
-    )
+    layout = [[0, rows * widths[0], widths[0]], [rows * widths[0], rows * widths[1], widths[1]]]
+    table = [[a.ptr for a in arrays[k]] + layout[k] for k in range(2)]
+    parameters = wp.array(table, dtype=wp.int64, device=wp_device)
     rates = wp.array(
         [[lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bc1, np.sqrt(bc2)] for lr in lrs], dtype=float, device=wp_device
     )
     mask = wp.array(selected, dtype=wp.uint8, device=wp_device)
-    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[addresses, layout, rates, mask], device=wp_device)
+    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[parameters, rates, mask], device=wp_device)
     for k, w in enumerate(widths):
         g = grads[k].astype(np.float64)
         m = beta1 * m0[k] + (1 - beta1) * g

@@ -6,9 +6,9 @@ Adam's two moments laid out alike. Both kernels apply torch's Adam update (``tor
 no weight decay, no amsgrad) through one function, ``adam_update``:
 
 - ``fused_adam_kernel`` updates several parameters in one launch (``dim`` = their total number
-  of values), each with its own rates and step count, read from three small tables. torch's
-  fused Adam launches once per parameter group, and a 3DGS model has six groups (one learning
-  rate each).
+  of values), each with its own rates and step count, read from two small tables. torch's
+  fused Adam launches at least once per parameter group, and a 3DGS model has six groups (one
+  learning rate each).
 - ``selective_adam_kernel`` updates one parameter (``dim=rows * row_width``).
 
 Both take ``selected``, one entry per row: a row whose entry is 0 keeps its values and both
@@ -53,41 +53,36 @@ def adam_update(
     param[i] = param[i] - (lr / bias_correction1) * m / (wp.sqrt(v) / bias_correction2_sqrt + eps)
 
 
-# Columns of fused_adam_kernel's tables.
-ADDRESS_COLUMNS = 4  # value, gradient, exp_avg, exp_avg_sq: addresses of float32 arrays
-LAYOUT_COLUMNS = 3  # first value's index in the launch, number of values, values per row
-RATE_COLUMNS = 8  # lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bias_correction1, bias_correction2_sqrt
-
-
 @wp.kernel(enable_backward=False)
 def fused_adam_kernel(
-    addresses: wp.array2d(dtype=wp.int64),
-    layout: wp.array2d(dtype=wp.int32),
+    parameters: wp.array2d(dtype=wp.int64),
     rates: wp.array2d(dtype=float),
     selected: wp.array(dtype=wp.uint8),
 ):
     """One Adam step of every parameter of the tables, one thread per value.
 
-    Parameter ``k`` (row ``k`` of each table) owns the launch indices ``layout[k, 0]`` to
-    ``layout[k, 0] + layout[k, 1]``, in order and without gaps: ``layout[0, 0]`` is 0 and the
-    launch's ``dim`` is the sum of ``layout[:, 1]``. ``addresses[k]``: the addresses of its value,
-    gradient, exp_avg and exp_avg_sq arrays (float32, ``layout[k, 1]`` each); ``rates[k]``: as the
-    arguments of ``selective_adam_kernel``, in that order. ``selected``: one entry per row
-    (``layout[k, 2]`` values) shared by every parameter, or empty for every row."""
+    Row ``k`` of ``parameters`` [P, 7] describes parameter ``k``: the addresses of its value,
+    gradient, exp_avg and exp_avg_sq arrays (float32, contiguous), then the first launch index it
+    owns, its number of values and its values per row. The parameters own the launch indices in
+    order and without gaps: the first starts at 0 and the launch's ``dim`` is the sum of the counts.
+    ``rates[k]`` [P, 8]: lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bias_correction1 and
+    bias_correction2_sqrt, as the arguments of ``selective_adam_kernel``. ``selected``: one entry
+    per row shared by every parameter, or empty for every row. (One int64 table and one float
+    table: two small copies to the device a step.)"""
     i = wp.tid()
     k = int(0)
-    while k + 1 < layout.shape[0] and i >= layout[k + 1, 0]:
+    while k + 1 < parameters.shape[0] and i >= int(parameters[k + 1, 4]):
         k += 1
-    local = i - layout[k, 0]
+    local = i - int(parameters[k, 4])
     if selected.shape[0] > 0:
-        if selected[local // layout[k, 2]] == wp.uint8(0):
+        if selected[local // int(parameters[k, 6])] == wp.uint8(0):
             return
-    count = layout[k, 1]
+    count = int(parameters[k, 5])
     adam_update(
-        wp.array(ptr=wp.uint64(addresses[k, 0]), shape=(count,), dtype=float),
-        wp.array(ptr=wp.uint64(addresses[k, 1]), shape=(count,), dtype=float),
-        wp.array(ptr=wp.uint64(addresses[k, 2]), shape=(count,), dtype=float),
-        wp.array(ptr=wp.uint64(addresses[k, 3]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(parameters[k, 0]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(parameters[k, 1]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(parameters[k, 2]), shape=(count,), dtype=float),
+        wp.array(ptr=wp.uint64(parameters[k, 3]), shape=(count,), dtype=float),
         local,
         rates[k, 0],
         rates[k, 1],

@@ -82,25 +82,16 @@ class FusedAdam(torch.optim.Optimizer):
         else:
             mask = selected.to(device).contiguous().view(torch.uint8)
         for batch in _launches(parameters):
-            layout, start = [], 0
-            for _, count, width, _ in batch:
-                layout.append([start, count, width])
+            table, start = [], 0
+            for addresses, count, width, _ in batch:
+                table.append([*addresses, start, count, width])
                 start += count
-            tables = [
-                _on(device, [entry[0] for entry in batch], torch.int64),
-                _on(device, layout, torch.int32),
-                _on(device, [entry[3] for entry in batch], torch.float32),
-            ]
+            tables = [_on(device, table, torch.int64), _on(device, [entry[3] for entry in batch], torch.float32)]
             with warp_scope(device):
                 launch(
                     fused_adam_kernel,
                     start,
-                    inputs=[
-                        wp_arg(tables[0], wp.int64),
-                        wp_arg(tables[1], wp.int32),
-                        wp_arg(tables[2], wp.float32),
-                        wp_arg(mask, wp.uint8),
-                    ],
+                    inputs=[wp_arg(tables[0], wp.int64), wp_arg(tables[1], wp.float32), wp_arg(mask, wp.uint8)],
                 )
         return loss
 
