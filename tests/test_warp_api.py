@@ -23,6 +23,8 @@ PUBLIC_KERNEL_API = {
     "sh_to_color_kernel",
     "sh_to_color_backward_kernel",
     "sh_to_color_grouped_backward_kernel",
+    "sh_to_color_staged_backward_kernel",
+    "SH_BLOCK",
     "bin_gaussians",
     "TileBins",
     "blend_forward_kernel",

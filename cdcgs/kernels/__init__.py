@@ -26,16 +26,19 @@ from .loss import (
     ssim_l1_launch_size,
 )
 from .projection import (
+    SH_BLOCK,
     Camera,
     make_camera,
     project_gaussians_kernel,
     sh_to_color_backward_kernel,
     sh_to_color_grouped_backward_kernel,
     sh_to_color_kernel,
+    sh_to_color_staged_backward_kernel,
 )
 
 __all__ = [
     "BLOCK_SIZE",
+    "SH_BLOCK",
     "TILE_SIZE",
     "Camera",
     "TileBins",
@@ -52,6 +55,7 @@ __all__ = [
     "sh_to_color_backward_kernel",
     "sh_to_color_grouped_backward_kernel",
     "sh_to_color_kernel",
+    "sh_to_color_staged_backward_kernel",
     "ssim_l1_backward_kernel",
     "ssim_l1_backward_rows_kernel",
     "ssim_l1_forward_kernel",
