@@ -52,7 +52,7 @@ from cdcgs.io import read_ply
 from cdcgs.train import trainer as trainer_module
 from cdcgs.train.config import DataConfig, TrainConfig
 from cdcgs.train.model import GaussianModel
-from cdcgs.train.ops import make_optimizer, set_hyperparameters
+from cdcgs.train.ops import make_optimizer
 from cdcgs.train.trainer import Trainer
 
 # The parts of a step, in the order they run; each is a labelled range in the profile.
@@ -138,13 +138,11 @@ def prepared(args, count: int, out: str) -> Trainer:
     generator = torch.Generator(device=trainer.device).manual_seed(0)
     source = GaussianModel.from_ply(read_ply(args.ply), device=trainer.device) if args.ply else trainer.model
     trainer.model = resampled(source, count, generator)
-    trainer.optimizer = make_optimizer(trainer.model, trainer.config.lr, trainer.scene.extent)
     if args.torch_adam and trainer.config.optimizer == "selective":
         raise SystemExit(f"--torch-adam: the {args.strategy} preset trains with selective Adam, which torch has not")
-    if args.torch_adam:  # the optimizer before FusedAdam: torch's fused Adam, one launch per group
-        groups = [{"params": g["params"], "name": g["name"]} for g in trainer.optimizer.param_groups]
-        trainer.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=trainer.device.type == "cuda")
-        set_hyperparameters(trainer.optimizer, trainer.config.lr, trainer.scene.extent)
+    # --torch-adam: the optimizer before FusedAdam, torch's fused Adam (one launch per group)
+    kind = "torch-adam" if args.torch_adam else "adam"
+    trainer.optimizer = make_optimizer(trainer.model, trainer.config.lr, trainer.scene.extent, kind)
     trainer.strategy_state = trainer.strategy.initialize_state(trainer.model)
     trainer.step = args.at - 1
     return trainer

@@ -329,3 +329,62 @@ def test_bad_rates_are_refused_before_any_state_changes(setting, message):
     with pytest.raises(ValueError, match=message):
         optimizer.step()
     assert not optimizer.state, "no state was created, no step counted"
+
+
+def test_torch_adam_option_trains_as_fused_adam(tiny_scene, tmp_path):
+    """``--optimizer torch-adam`` (torch's fused Adam, the reference FusedAdam replaced) and the
+    default ``adam`` move a training the same way, up to float32 rounding."""
+    params = {}
+    for kind in ("adam", "torch-adam"):
+        trainer = Trainer(tiny_config(tiny_scene, tmp_path / kind, iters=30, optimizer=kind), SHORT)
+        trainer._setup()
+        for _ in range(4):
+            trainer.train_step()
+        params[kind] = {k: p.detach().clone() for k, p in trainer.model.params.items()}
+        if kind == "torch-adam":
+            assert type(trainer.optimizer) is torch.optim.Adam
+            assert all(group["fused"] for group in trainer.optimizer.param_groups)
+        else:
+            assert isinstance(trainer.optimizer, FusedAdam)
+    start = Trainer(tiny_config(tiny_scene, tmp_path / "start", iters=30), SHORT)
+    start._setup()
+    for k, p in params["adam"].items():
+        moved = (p - start.model.params[k].detach()).abs().max()
+        assert moved > 0 or k == "sh_rest", f"{k} did not move"  # sh_rest waits for degree 1
+        # Both are Adam in float32 with eps 1e-15: where a gradient is near zero, m / sqrt(v) is
+        # ill-conditioned and the two roundings of the first moment (torch lerps it) part by up to
+        # about 0.4% of the largest move (one quaternion entry here), everywhere else by ~1e-4.
+        torch.testing.assert_close(params["torch-adam"][k], p, rtol=1e-4, atol=1e-2 * float(moved))
+
+
+@pytest.mark.parametrize("saved, loaded", [("adam", "torch-adam"), ("torch-adam", "adam")])
+def test_a_checkpoint_resumes_with_the_other_adam(saved, loaded):
+    """A state saved by one Adam goes on in the other as the saver would have gone on: the loaded
+    optimizer keeps its own implementation flags (torch's ``fused``), not the saver's."""
+    g = torch.Generator().manual_seed(9)
+    model, _ = hand_model(8)
+    rates = LearningRates(opacity_logits=0.025)
+    first = ops.make_optimizer(model, rates, 1.0, saved)
+    grads = [{k: torch.randn(p.shape, generator=g) for k, p in model.params.items()} for _ in range(4)]
+    for step in range(2):
+        for k, p in model.params.items():
+            p.grad = grads[step][k].clone()
+        first.step()
+    state = copy.deepcopy(first.state_dict())
+    twin = {k: p.detach().clone().requires_grad_() for k, p in model.params.items()}
+    second = ops.make_optimizer(hand_model(8)[0], rates, 1.0, loaded)
+    for group in second.param_groups:  # the second optimizer on its own copies of the parameters
+        group["params"][0] = twin[group["name"]]
+    ops.load_optimizer_state(second, state)
+    ops.set_hyperparameters(second, rates, 1.0)  # as a resumed run does: the command's rates
+    own = type(second) is torch.optim.Adam
+    assert all(("fused" in group) == own for group in second.param_groups)
+    for step in (2, 3):
+        for k in model.params:
+            model.params[k].grad = grads[step][k].clone()
+            twin[k].grad = grads[step][k].clone()
+        first.step()
+        second.step()
+    for k, p in model.params.items():
+        torch.testing.assert_close(twin[k], p.detach(), rtol=1e-5, atol=1e-6)
+        assert float(second.state[twin[k]]["step"]) == 4

@@ -29,7 +29,7 @@ __all__ = [
 
 BACKGROUNDS = ("black", "white", "random")
 SCALE_RULES = ("3dgs", "cdc")
-OPTIMIZERS = ("adam", "selective")
+OPTIMIZERS = ("adam", "selective", "torch-adam")
 RESOLUTION_SCHEDULES = ("none", "dash")
 
 
@@ -163,7 +163,7 @@ class TrainConfig:
     )
     optimizer: str | None = option(
         None,
-        "adam, or selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; not exact) (none: the preset's, adam; selective for fast)",
+        "adam (one Warp launch for all parameters), selective: Adam on the Gaussians the step's view sees only, the others keep their parameters and moments (Taming 3DGS's selective Adam; not exact), or torch-adam: torch's Adam, fused on CUDA, one launch per parameter (the reference adam replaced) (none: the preset's, adam; selective for fast)",
         choices=OPTIMIZERS,
     )
     resolution_schedule: str | None = option(

@@ -14,11 +14,21 @@ import math
 import torch
 
 from ..geometry import quat_to_rotation
-from .config import LearningRates
+from .config import OPTIMIZERS, LearningRates
 from .model import PARAM_NAMES, GaussianModel
 from .optim import FusedAdam
 
-__all__ = ["append", "clone", "make_optimizer", "relocate", "remove", "reset_opacity", "set_hyperparameters", "split"]
+__all__ = [
+    "append",
+    "clone",
+    "load_optimizer_state",
+    "make_optimizer",
+    "relocate",
+    "remove",
+    "reset_opacity",
+    "set_hyperparameters",
+    "split",
+]
 
 
 def make_optimizer(
@@ -27,20 +37,48 @@ def make_optimizer(
     extent: float,
     kind: str = "adam",
     batch_rule: tuple[float, float, float] = (1.0, 1.0, 1.0),
-) -> FusedAdam:
+) -> torch.optim.Optimizer:
     """One Adam parameter group per parameter, named, with the 3DGS rates (eps 1e-15 as 3DGS).
 
-    :class:`cdcgs.train.optim.FusedAdam` (all groups in one Warp launch) for both kinds:
+    "adam" and "selective": :class:`cdcgs.train.optim.FusedAdam` (all groups in one Warp launch);
     "adam" steps every Gaussian, "selective" tells the trainer to pass ``step`` the mask of the
-    Gaussians the view sees. ``batch_rule``: (learning-rate factor, eps factor, beta power) of a
-    batch of views per step (:func:`cdcgs.train.config.batch_rule`).
+    Gaussians the view sees. "torch-adam": torch's Adam (fused on CUDA, one launch per group), the
+    reference that FusedAdam replaced. ``batch_rule``: (learning-rate factor, eps factor, beta
+    power) of a batch of views per step (:func:`cdcgs.train.config.batch_rule`).
     """
-    if kind not in ("adam", "selective"):
-        raise ValueError(f"optimizer must be adam or selective, got {kind!r}")
+    if kind not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {kind!r}")
     groups = [{"params": [model.params[name]], "name": name} for name in PARAM_NAMES]
-    optimizer = FusedAdam(groups, lr=0.0, eps=1e-15)
+    if kind == "torch-adam":
+        optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+    else:
+        optimizer = FusedAdam(groups, lr=0.0, eps=1e-15)
     set_hyperparameters(optimizer, lrs, extent, batch_rule)
     return optimizer
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict) -> None:
+    """Load a checkpoint's optimizer state into ``optimizer``, whichever Adam saved it: the groups
+    keep this optimizer's own implementation (torch's ``fused``, ``foreach`` and ``capturable``,
+    which torch would otherwise take from the saved groups or reset), options the saver's groups
+    lack (torch's ``weight_decay`` in a FusedAdam state) get this optimizer's defaults, and a fused or capturable
+    torch Adam gets its step counts on the parameters' device, where it reads them."""
+    keys = ("fused", "foreach", "capturable")
+    flags = [{k: g[k] for k in keys if k in g} for g in optimizer.param_groups]
+    optimizer.load_state_dict(state)
+    for group, own in zip(optimizer.param_groups, flags):
+        for key, value in optimizer.defaults.items():  # options the saver's groups did not have
+            group.setdefault(key, value)
+        for key in keys:
+            if key in own:
+                group[key] = own[key]
+            else:  # a flag of the optimizer that saved the state, not of this one
+                group.pop(key, None)
+        if group.get("fused") or group.get("capturable"):
+            for p in group["params"]:
+                moments = optimizer.state.get(p)
+                if moments and torch.is_tensor(moments.get("step")):
+                    moments["step"] = moments["step"].to(device=p.device, dtype=torch.float32)
 
 
 def set_hyperparameters(

@@ -29,7 +29,7 @@ from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
-from .ops import make_optimizer, set_hyperparameters
+from .ops import load_optimizer_state, make_optimizer, set_hyperparameters
 from .schedules import dash_schedule, position_lr
 from .strategies import make_strategy
 from .strategy import StepContext
@@ -299,7 +299,7 @@ class Trainer:
         else:
             self.model = GaussianModel.from_state_dict(resume_state["model"], device=self.device)
             self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
-            self.optimizer.load_state_dict(resume_state["optimizer"])
+            load_optimizer_state(self.optimizer, resume_state["optimizer"])
             # The command's rates, eps and betas (its batch size's rule), not the checkpoint's.
             set_hyperparameters(self.optimizer, config.lr, self.scene.extent, batch_rule(config))
             self.strategy_state = {
