@@ -519,7 +519,18 @@ def _add_process_parser(sub):
         help=f"camera model (default: {d.camera_model})",
     )
     p.add_argument("--per-image-camera", action="store_true", help="one camera per image (default: one shared camera)")
-    p.add_argument("--mapper", choices=MAPPERS, default=d.mapper, help=f"mapper (default: {d.mapper})")
+    p.add_argument(
+        "--mapper",
+        choices=MAPPERS,
+        default=d.mapper,
+        help=f"mapper (default: {d.mapper}; global kept bonsai's published poses where incremental broke them)",
+    )
+    p.add_argument(
+        "--calibrate-view-graph",
+        action="store_true",
+        help="with --mapper global: estimate the focal length from the view graph first (COLMAP's "
+        "view_graph_calibrator; default: start from the EXIF focal length or 1.2 x the larger side)",
+    )
     p.add_argument(
         "--max-image-size",
         type=int,
@@ -566,6 +577,7 @@ def cmd_process(args) -> int:
         camera_model=args.camera_model,
         per_image_camera=args.per_image_camera,
         mapper=args.mapper,
+        calibrate_view_graph=args.calibrate_view_graph,
         max_image_size=args.max_image_size,
         max_features=args.max_features,
         device=args.device,

@@ -51,6 +51,7 @@ class ProcessOptions:
     camera_model: str = "OPENCV"
     per_image_camera: bool = False  # one camera per image instead of one shared camera
     mapper: str = "incremental"
+    calibrate_view_graph: bool = False  # global mapper: focal lengths from the view graph first
     max_image_size: int = 3200  # SIFT works on images at most this large (longer side)
     max_features: int = 8192
     device: str = "auto"  # auto, cpu, cuda (features and matching)
@@ -83,6 +84,8 @@ class ProcessOptions:
                 raise OptionError(message)
         if self.matcher == "vocabtree" and not (self.vocab_tree and os.path.isfile(self.vocab_tree)):
             raise OptionError("--matcher vocabtree needs --vocab-tree FILE (a COLMAP vocabulary tree)")
+        if self.calibrate_view_graph and self.mapper != "global":
+            raise OptionError("--calibrate-view-graph calibrates for --mapper global only")
         if self.vocab_tree and self.matcher != "vocabtree":
             raise OptionError("--vocab-tree is read by --matcher vocabtree only")
 
@@ -399,11 +402,13 @@ def _map(pycolmap, database: str, image_dir: str, sparse_all: str, options: Proc
     from tqdm import tqdm
 
     if options.mapper == "global":
-        # As COLMAP's automatic reconstruction: focal lengths from the view graph first (frames and
-        # renders carry no EXIF focal length).
-        calibration = pycolmap.ViewGraphCalibrationOptions()
-        calibration.random_seed = options.seed
-        pycolmap.calibrate_view_graph(database, calibration)
+        if options.calibrate_view_graph:
+            # COLMAP's view_graph_calibrator: focal lengths from the pairs' fundamental matrices.
+            # Off by default: on the process tests' rendered room it found 158-210 px for a true 256
+            # (the distortion took up the rest, and the model came out turned by 180 degrees).
+            calibration = pycolmap.ViewGraphCalibrationOptions()
+            calibration.random_seed = options.seed
+            pycolmap.calibrate_view_graph(database, calibration)
         pipeline = pycolmap.GlobalPipelineOptions()
         pipeline.random_seed = options.seed
         pipeline.num_threads = _threads(options)
