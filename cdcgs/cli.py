@@ -599,6 +599,12 @@ def cmd_process(args) -> int:
         print(f"  not registered: {entry['name']}: {entry['reason']}")
     for other in summary["other_models"]:
         print(f"  another model of {other['images']} images and {other['points']} points was left out")
+    for jump in summary["path"]["jumps"]:
+        print(
+            f"  warning: the camera path jumps from {jump['from']} to {jump['to']}, {jump['ratio']}x its median "
+            "step between consecutive images: the model may be in pieces"
+            + ("" if summary["mapper"] == "global" else " (--mapper global may join them; docs/process.md)")
+        )
     print(f"scene in {os.path.abspath(args.out)} (cdcgs train --data {args.out})")
     return 0
 

@@ -16,6 +16,8 @@ from cdcgs.errors import InputError, OptionError
 from cdcgs.geometry import quat_to_rotation, similarity_transform
 from cdcgs.io import load_scene
 from cdcgs.process import ProcessOptions, process
+from cdcgs.process import pipeline as process_pipeline
+from cdcgs.process.checks import path_jumps
 
 VIEWS, WIDTH, HEIGHT = 24, 320, 240
 
@@ -89,6 +91,7 @@ def test_photos_give_the_true_poses(room, tmp_path):
     assert registered == summary["registered"]
     assert rotation_error < 0.5 and centre_error < 0.01, (rotation_error, centre_error)
     assert json.load(open(out / "process.json"))["registered"] == summary["registered"]
+    assert summary["path"]["checked"] and summary["path"]["jumps"] == [], summary["path"]
     assert set(summary["seconds"]) == {"images", "features", "matching", "mapping", "undistortion", "downscaling"}
     for factor in (2, 4, 8):
         with (
@@ -225,7 +228,7 @@ def test_unrelated_images_name_every_image_and_why(tmp_path):
     assert all(f"noise_{i}.png: no matches with another image" in message for i in range(5))
 
 
-def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsys):
+def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsys, monkeypatch):
     """The command, with the global mapper: it starts from the prior focal length (no view-graph
     calibration, which turned this room's model by 180 degrees) and recovers the true poses."""
     folder, _, poses = room
@@ -233,8 +236,12 @@ def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsy
     assert f"cdcgs process {folder} --out SCENE" in capsys.readouterr().err
     out = tmp_path / "scene"
     argv = ["process", str(folder), "--out", str(out), "--mapper", "global", "--threads", "2", "--no-progress"]
+    # Every step counts as a jump (factor 0): the command prints each with the views it joins.
+    monkeypatch.setattr(process_pipeline, "path_jumps", lambda names, centres: path_jumps(names, centres, 0.0))
     assert cli_main(argv) == 0
     printed = capsys.readouterr().out
+    assert re.search(r"warning: the camera path jumps from view_00.png to view_01.png, [\d.]+x its median", printed)
+    assert "--mapper global may join them" not in printed  # it is the global mapper already
     assert re.search(rf"registered (2[34]) of {VIEWS} images, \d+ points", printed), printed
     summary = json.load(open(out / "process.json"))
     assert "global mapping" in printed and summary["mapper"] == "global" and summary["options"]["threads"] == 2
@@ -268,3 +275,32 @@ def test_the_view_graph_calibration_runs_before_global_mapping_when_asked(room, 
     summary = process(folder, tmp_path / "scene", options)
     assert len(calls) == 1 and calls[0][0].endswith("database.db") and calls[0][1] == 3
     assert summary["registered"] >= 0.95 * VIEWS and summary["options"]["calibrate_view_graph"] is True
+
+
+def test_the_path_check_finds_a_seam_and_leaves_a_collection_alone():
+    """Cameras on a circle named in capture order (numbers ordered by value): no jump; the same
+    path with its second part moved and shrunk, as bonsai's incremental models were: one jump, at
+    the seam; the names shuffled over the positions (a collection, not a path): not checked."""
+    count = 30
+    angles = np.linspace(0, 2 * np.pi, count, endpoint=False)
+    circle = np.stack([np.cos(angles), np.sin(angles), 0.02 * np.sin(5 * angles)], 1) * 4.0
+    names = [f"view_{i + 1}.jpg" for i in range(count)]  # view_2 before view_10
+    clean = path_jumps(names, circle)
+    assert clean["checked"] and clean["jumps"] == []
+    assert 0.9 < clean["step_over_nearest"] < 1.1
+    step = np.linalg.norm(circle[1] - circle[0])
+    pieces = circle.copy()
+    pieces[12:] = 0.3 * pieces[12:] + np.array([5.0, -2.0, 1.0])
+    seam = np.linalg.norm(pieces[12] - pieces[11])
+    found = path_jumps(list(reversed(names)), pieces[::-1])  # the order comes from the names, not the list
+    median = np.median(np.linalg.norm(np.diff(pieces, axis=0), axis=1))
+    assert found["checked"] and found["jumps"] == [
+        {"from": "view_12.jpg", "to": "view_13.jpg", "ratio": round(float(seam / median), 1)}
+    ]
+    assert seam > 4 * step
+    shuffled = np.random.default_rng(0).permutation(count)
+    collection = path_jumps(names, circle[shuffled])
+    assert not collection["checked"] and "do not follow" in collection["reason"]
+    assert not path_jumps(names[:5], circle[:5])["checked"]
+    with pytest.raises(ValueError, match="one \\[3\\] centre per name"):
+        path_jumps(names, circle[:, :2])

@@ -13,8 +13,9 @@ Stages, each timed and shown with a progress bar:
 5. undistortion to PINHOLE images: ``SCENE/images`` and ``SCENE/sparse/0``;
 6. ``SCENE/images_2``, ``_4``, ``_8``: the undistorted images downscaled.
 
-The summary (images registered of total, points, mean reprojection error, time per stage, and
-why each unregistered image failed) is returned and written to ``SCENE/process.json``.
+The summary (images registered of total, points, mean reprojection error, time per stage, why
+each unregistered image failed, and the jumps in the camera path that mark a model in pieces:
+:func:`cdcgs.process.checks.path_jumps`) is returned and written to ``SCENE/process.json``.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 from ..errors import InputError, OptionError
+from .checks import path_jumps
 from .inputs import VIDEO_EXTENSIONS, copy_photos, list_photos, video_frames
 
 __all__ = ["MAPPERS", "MATCHERS", "ProcessOptions", "process"]
@@ -367,6 +369,8 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
             _downscale(os.path.join(out, "images"), out, options.downscales, options.progress)
     finally:
         stages.close()
+    posed = [image for image in best.images.values() if image.has_pose]
+    path = path_jumps([image.name for image in posed], [image.projection_center() for image in posed])
     others = [
         {"model": index, "images": count, "points": models[index].num_points3D()}
         for count, index in registered_by_model[1:]
@@ -381,6 +385,7 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options) -> d
         "mean_reprojection_error": best.compute_mean_reprojection_error(),
         "cameras": best.num_cameras(),
         "other_models": others,
+        "path": path,
         "matcher": matcher,
         "mapper": options.mapper,
         "device": device_name,
