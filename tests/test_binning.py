@@ -231,3 +231,57 @@ def test_bin_gaussians_orders_each_tile_by_depth_then_id(device):
     assert bins.num_intersections == counts.sum() == len(ids)
     assert (bins.tile_counts.numpy() == counts).all()
     assert ties > 0, "the scene must hold Gaussians of equal depth in one tile"
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_binning_within_a_capacity_gives_the_same_lists_without_reading_the_count(device, exact):
+    """``finish_binning_within``: the pairs in a fixed number of slots, no host read of the count.
+    With room to spare or exactly enough, every tile's list equals ``finish_binning``'s and the
+    overflow flag stays 0; one slot short, the flag is 1."""
+    import numpy as np
+    import warp as wp
+
+    from cdcgs.kernels.binning import finish_binning, finish_binning_within, start_binning
+
+    rng = np.random.default_rng(11)
+    n, width, height = 300, 90, 60
+    means2d = rng.uniform(-20, [110, 80], size=(n, 2)).astype(np.float32)
+    radii = rng.integers(1, 25, size=(n, 2)).astype(np.int32)
+    radii[rng.random(n) < 0.2] = 0
+    depths = rng.choice(np.float32([0.5, 1.0, 3.0, 7.25]), size=n)
+    conics = np.stack([rng.uniform(0.01, 0.2, n), rng.uniform(-0.005, 0.005, n), rng.uniform(0.01, 0.2, n)], 1)
+    opacities = rng.uniform(0.01, 0.99, n)
+
+    def start():
+        footprint = {}
+        if exact:
+            footprint = {
+                "conics": wp.array(conics.astype(np.float32), dtype=wp.vec3, device=device),
+                "opacities": wp.array(opacities.astype(np.float32), dtype=wp.float32, device=device),
+            }
+        return start_binning(
+            wp.array(means2d, dtype=wp.vec2, device=device),
+            wp.array(radii, dtype=wp.vec2i, device=device),
+            wp.array(depths, dtype=wp.float32, device=device),
+            width,
+            height,
+            **footprint,
+        )
+
+    first = start()
+    total = int(first.offsets.numpy()[-1])
+    reference = finish_binning(first, total)
+    ranges, ids = reference.tile_ranges.numpy(), reference.sorted_gauss_ids.numpy()
+    assert total > 100
+    for capacity in (total + 37, total):
+        bins, overflow = finish_binning_within(start(), capacity)
+        assert overflow.numpy().tolist() == [0] and bins.num_intersections == capacity
+        got_ranges, got_ids = bins.tile_ranges.numpy(), bins.sorted_gauss_ids.numpy()
+        np.testing.assert_array_equal(got_ranges, ranges)
+        for begin, end in ranges:
+            assert got_ids[begin:end].tolist() == ids[begin:end].tolist()
+        assert (got_ids[total:] == -1).all() and len(got_ids) == capacity
+    _, overflow = finish_binning_within(start(), total - 1)
+    assert overflow.numpy().tolist() == [1]
+    with pytest.raises(ValueError, match="capacity of at least 1"):
+        finish_binning_within(start(), 0)

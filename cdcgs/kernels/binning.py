@@ -31,7 +31,9 @@ __all__ = [
     "count_tiles_kernel",
     "emit_keys_kernel",
     "finish_binning",
+    "finish_binning_within",
     "gather_counts_kernel",
+    "overflow_kernel",
     "row_span",
     "start_binning",
     "tile_ranges_kernel",
@@ -172,6 +174,7 @@ def emit_keys_kernel(
     opacities: wp.array(dtype=wp.float32),
     exact: int,
     tiles_x: int,
+    sentinel: int,
     keys_out: wp.array(dtype=wp.int32),
     gauss_ids_out: wp.array(dtype=wp.int32),
 ):
@@ -185,8 +188,19 @@ def emit_keys_kernel(
     a warp's work even: a Gaussian over hundreds of tiles no longer holds up the 31 small ones that
     share its warp. The search for the Gaussian is a binary search whose first steps every thread
     shares (cached), and the threads of one Gaussian walk the same rows together.
+
+    Launched over more slots than pairs (:func:`finish_binning_within`), a slot past the last
+    pair gets the key ``sentinel`` (the tile count: it sorts after every tile) and the id -1.
     """
     k = wp.tid()
+    if num_gaussians == 0:
+        keys_out[k] = sentinel
+        gauss_ids_out[k] = -1
+        return
+    if k >= ordered_offsets[num_gaussians - 1]:
+        keys_out[k] = sentinel
+        gauss_ids_out[k] = -1
+        return
     lo = int(0)
     hi = num_gaussians - 1
     while lo < hi:
@@ -224,12 +238,20 @@ def emit_keys_kernel(
 def tile_ranges_kernel(
     sorted_keys: wp.array(dtype=wp.int32),
     num_intersections: int,
+    sentinel: int,
     tile_ranges_out: wp.array2d(dtype=wp.int32),
 ):
     """[start, end) of each tile's run in the sorted intersections (tiles with none keep 0, 0);
-    ``tile_ranges_out`` is [tiles_y * tiles_x, 2], zeroed before."""
+    ``tile_ranges_out`` is [tiles_y * tiles_x, 2], zeroed before. Keys equal to ``sentinel``
+    (the empty slots of :func:`finish_binning_within`, sorted last) belong to no tile."""
     k = wp.tid()
     tile = sorted_keys[k]
+    if tile == sentinel:
+        if k > 0:
+            previous = sorted_keys[k - 1]
+            if previous != sentinel:
+                tile_ranges_out[previous, 1] = k
+        return
     if k == 0:
         tile_ranges_out[tile, 0] = 0
     else:
@@ -348,41 +370,92 @@ def finish_binning(start: BinningStart, total: int) -> TileBins:
     """The second half of :func:`bin_gaussians`: the (tile, Gaussian) pairs emitted in depth order
     and sorted by tile, with ``total`` the intersection count, ``start.offsets[-1]``, read on the
     host."""
+    num_tiles = start.tiles_x * start.tiles_y
+    if total > 0:  # keys below the tile count: no sentinel (-1 matches none)
+        return _emit_sorted(start, total, -1, max(int(num_tiles - 1).bit_length(), 1))
+    keys = start.allocate((2,), wp.int32, start.device)
+    return TileBins(
+        tiles_x=start.tiles_x,
+        tiles_y=start.tiles_y,
+        tile_counts=start.tile_counts,
+        num_intersections=0,
+        sorted_gauss_ids=keys[:0],
+        tile_ranges=start.zeros((num_tiles, 2), wp.int32, start.device),
+    )
+
+
+def _emit_sorted(start: BinningStart, slots: int, sentinel: int, end_bit: int) -> TileBins:
+    """The pairs emitted into ``slots`` slots (an empty slot gets the key ``sentinel``), sorted by
+    tile over ``end_bit`` bits, and each tile's range."""
     n = start.offsets.shape[0]
     device, launch = start.device, start.launch
     exact = int(start.conics is not None)
     num_tiles = start.tiles_x * start.tiles_y
     tile_ranges = start.zeros((num_tiles, 2), wp.int32, device)
-    keys = start.allocate((max(2 * total, 2),), wp.int32, device)
-    gauss_ids = start.allocate((max(2 * total, 2),), wp.int32, device)
-    if total > 0:
-        launch(
-            emit_keys_kernel,
-            total,
-            inputs=[
-                start.offsets,
-                n,
-                start.depth_order,
-                start.tile_rects,
-                start.means2d,
-                start.conics,
-                start.opacities,
-                exact,
-                start.tiles_x,
-            ],
-            outputs=[keys, gauss_ids],
-            device=device,
-        )
-        wp.utils.radix_sort_pairs(keys, gauss_ids, total, end_bit=max(int(num_tiles - 1).bit_length(), 1))
-        launch(tile_ranges_kernel, total, inputs=[keys, total], outputs=[tile_ranges], device=device)
+    keys = start.allocate((2 * slots,), wp.int32, device)  # radix_sort_pairs needs twice the count
+    gauss_ids = start.allocate((2 * slots,), wp.int32, device)
+    launch(
+        emit_keys_kernel,
+        slots,
+        inputs=[
+            start.offsets,
+            n,
+            start.depth_order,
+            start.tile_rects,
+            start.means2d,
+            start.conics,
+            start.opacities,
+            exact,
+            start.tiles_x,
+            sentinel,
+        ],
+        outputs=[keys, gauss_ids],
+        device=device,
+    )
+    wp.utils.radix_sort_pairs(keys, gauss_ids, slots, end_bit=end_bit)
+    launch(tile_ranges_kernel, slots, inputs=[keys, slots, sentinel], outputs=[tile_ranges], device=device)
     return TileBins(
         tiles_x=start.tiles_x,
         tiles_y=start.tiles_y,
         tile_counts=start.tile_counts,
-        num_intersections=total,
-        sorted_gauss_ids=gauss_ids[:total] if total > 0 else gauss_ids[:0],
+        num_intersections=slots,
+        sorted_gauss_ids=gauss_ids[:slots],
         tile_ranges=tile_ranges,
     )
+
+
+@wp.kernel(enable_backward=False)
+def overflow_kernel(
+    ordered_offsets: wp.array(dtype=wp.int32),
+    num_gaussians: int,
+    capacity: int,
+    overflow_out: wp.array(dtype=wp.int32),
+):
+    """``overflow_out[0]`` = 1 when the pairs (the last inclusive offset) exceed ``capacity``."""
+    total = int(0)
+    if num_gaussians > 0:
+        total = ordered_offsets[num_gaussians - 1]
+    overflow_out[0] = wp.where(total > capacity, 1, 0)
+
+
+def finish_binning_within(start: BinningStart, capacity: int) -> tuple[TileBins, wp.array]:
+    """:func:`finish_binning` without reading the intersection count on the host: the pairs go
+    into ``capacity`` slots, and the empty slots (key ``sentinel`` = the tile count, id -1) sort
+    after every pair and belong to no tile. Returns the bins (``sorted_gauss_ids`` of length
+    ``capacity``; ``num_intersections`` is ``capacity``, an upper bound) and a [1] int32 device
+    flag that is 1 when the count exceeded ``capacity``: then the bins miss pairs and a render
+    from them is wrong, so whoever reads the flag later must discard it. With ``capacity`` at
+    least the count, the tile ranges and each tile's list are those of :func:`finish_binning`
+    (the sort is stable and the empty slots come last). The sort's work grows with ``capacity``.
+    """
+    if capacity < 1:
+        raise ValueError(f"finish_binning_within needs a capacity of at least 1, got {capacity}")
+    n = start.offsets.shape[0]
+    overflow = start.allocate((1,), wp.int32, start.device)
+    start.launch(overflow_kernel, 1, inputs=[start.offsets, n, capacity], outputs=[overflow], device=start.device)
+    num_tiles = start.tiles_x * start.tiles_y
+    # The sentinel, the tile count, sorts after every tile id: one more bit where it needs one.
+    return _emit_sorted(start, capacity, num_tiles, max(int(num_tiles).bit_length(), 1)), overflow
 
 
 def bin_gaussians(
