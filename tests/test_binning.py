@@ -234,18 +234,20 @@ def test_bin_gaussians_orders_each_tile_by_depth_then_id(device):
 
 
 @pytest.mark.parametrize("exact", [False, True])
-def test_binning_within_a_capacity_gives_the_same_lists_without_reading_the_count(device, exact):
+@pytest.mark.parametrize("width, height", [(90, 60), (128, 64)])
+def test_binning_within_a_capacity_gives_the_same_lists_without_reading_the_count(device, exact, width, height):
     """``finish_binning_within``: the pairs in a fixed number of slots, no host read of the count.
     With room to spare or exactly enough, every tile's list equals ``finish_binning``'s and the
-    overflow flag stays 0; one slot short, the flag is 1."""
+    overflow flag stays 0; one slot short, the flag is 1. 128 x 64 has 32 tiles, a power of two:
+    the empty slots' key (32) needs a sort bit more than the tile ids."""
     import numpy as np
     import warp as wp
 
     from cdcgs.kernels.binning import finish_binning, finish_binning_within, start_binning
 
     rng = np.random.default_rng(11)
-    n, width, height = 300, 90, 60
-    means2d = rng.uniform(-20, [110, 80], size=(n, 2)).astype(np.float32)
+    n = 300
+    means2d = rng.uniform(-20, [width + 20, height + 20], size=(n, 2)).astype(np.float32)
     radii = rng.integers(1, 25, size=(n, 2)).astype(np.int32)
     radii[rng.random(n) < 0.2] = 0
     depths = rng.choice(np.float32([0.5, 1.0, 3.0, 7.25]), size=n)

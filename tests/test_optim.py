@@ -181,11 +181,15 @@ def test_a_bad_mask_is_refused_and_nothing_moves(mask, message):
     assert not optimizer.state, "no state was created either"
 
 
-def test_the_surgery_keeps_its_moments_in_step():
+@pytest.mark.parametrize("kind", ["selective", "torch-adam"])
+def test_the_surgery_keeps_its_moments_in_step(kind):
+    """Removing Gaussians under FusedAdam (selective) and torch's Adam, each loaded from a state
+    of the other kind: each parameter's moments keep their rows, and the next step counts on from
+    the loaded one (selective: the unselected rows keep their moments)."""
     model, adam = hand_model()
-    optimizer = ops.make_optimizer(model, LearningRates(), 1.0, "selective")
-    assert isinstance(optimizer, FusedAdam)
-    optimizer.load_state_dict(adam.state_dict())  # Adam's state, as a resume with the other optimizer loads it
+    optimizer = ops.make_optimizer(model, LearningRates(), 1.0, kind)
+    assert isinstance(optimizer, FusedAdam) == (kind == "selective")
+    ops.load_optimizer_state(optimizer, adam.state_dict())  # as a resume with the other optimizer loads it
     for group in optimizer.param_groups:
         group["lr"] = 0.01  # the hand model's Adam leaves the opacity rate unset
     before = {g["name"]: optimizer.state[g["params"][0]]["exp_avg"].clone() for g in optimizer.param_groups}
@@ -198,11 +202,18 @@ def test_the_surgery_keeps_its_moments_in_step():
         torch.testing.assert_close(optimizer.state[p]["exp_avg"], before[group["name"]][~drop])
     for p in model.params.values():
         p.grad = torch.ones_like(p)
-    optimizer.step(torch.arange(model.num) % 2 == 0)
+    if kind == "selective":
+        optimizer.step(torch.arange(model.num) % 2 == 0)
+    else:
+        optimizer.step()
     for group in optimizer.param_groups:
         state = optimizer.state[group["params"][0]]
         assert float(state["step"]) == 2.0  # loaded 1, one step
-        torch.testing.assert_close(state["exp_avg"][1::2], before[group["name"]][~drop][1::2])
+        kept = before[group["name"]][~drop]
+        if kind == "selective":
+            torch.testing.assert_close(state["exp_avg"][1::2], kept[1::2])
+        else:
+            torch.testing.assert_close(state["exp_avg"], 0.9 * kept + 0.1)
 
 
 def test_a_training_step_moves_only_what_the_view_sees(tiny_scene, tmp_path):
@@ -341,9 +352,10 @@ def test_torch_adam_option_trains_as_fused_adam(tiny_scene, tmp_path):
         for _ in range(4):
             trainer.train_step()
         params[kind] = {k: p.detach().clone() for k, p in trainer.model.params.items()}
-        if kind == "torch-adam":
+        if kind == "torch-adam":  # fused on CUDA, torch's loop on the CPU
             assert type(trainer.optimizer) is torch.optim.Adam
-            assert all(group["fused"] for group in trainer.optimizer.param_groups)
+            fused = True if trainer.device.type == "cuda" else None
+            assert all(group["fused"] is fused for group in trainer.optimizer.param_groups)
         else:
             assert isinstance(trainer.optimizer, FusedAdam)
     start = Trainer(tiny_config(tiny_scene, tmp_path / "start", iters=30), SHORT)
@@ -379,6 +391,7 @@ def test_a_checkpoint_resumes_with_the_other_adam(saved, loaded):
     ops.set_hyperparameters(second, rates, 1.0)  # as a resumed run does: the command's rates
     own = type(second) is torch.optim.Adam
     assert all(("fused" in group) == own for group in second.param_groups)
+    assert not own or all(group["fused"] is None for group in second.param_groups)  # its own, on the CPU
     for step in (2, 3):
         for k in model.params:
             model.params[k].grad = grads[step][k].clone()
@@ -388,3 +401,30 @@ def test_a_checkpoint_resumes_with_the_other_adam(saved, loaded):
     for k, p in model.params.items():
         torch.testing.assert_close(twin[k], p.detach(), rtol=1e-5, atol=1e-6)
         assert float(second.state[twin[k]]["step"]) == 4
+
+
+def test_a_fused_torch_adam_keeps_its_flag_and_finds_its_step_counts_on_the_device():
+    """``load_optimizer_state`` into torch's fused Adam from a FusedAdam state: a plain
+    ``load_state_dict`` would take the saver's groups and leave ``fused`` unset (torch's slow
+    loop); the loader keeps ``fused`` True and puts each step count on its parameter's device."""
+    if not hasattr(torch, "_fused_adam_"):
+        pytest.skip("this torch has no fused Adam")
+    model, _ = hand_model(8)
+    saver = ops.make_optimizer(model, LearningRates(opacity_logits=0.025), 1.0, "adam")
+    for p in model.params.values():
+        p.grad = torch.ones_like(p)
+    saver.step()
+    groups = [{"params": [p], "name": name} for name, p in model.params.items()]
+    try:
+        fused = torch.optim.Adam(groups, lr=0.01, eps=1e-15, fused=True)
+    except RuntimeError:
+        pytest.skip("this torch has no fused Adam on the CPU")
+    plain = copy.deepcopy(fused)
+    plain.load_state_dict(copy.deepcopy(saver.state_dict()))
+    assert not any(group["fused"] for group in plain.param_groups), "torch's own load drops the flag"
+    ops.load_optimizer_state(fused, copy.deepcopy(saver.state_dict()))
+    for group in fused.param_groups:
+        p = group["params"][0]
+        assert group["fused"] is True and fused.state[p]["step"].device == p.device
+        assert fused.state[p]["step"].dtype == torch.float32 and float(fused.state[p]["step"]) == 1.0
+    fused.step()  # goes on from step 1

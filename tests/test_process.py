@@ -238,6 +238,12 @@ def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsy
     argv = ["process", str(folder), "--out", str(out), "--mapper", "global", "--threads", "2", "--no-progress"]
     # Every step counts as a jump (factor 0): the command prints each with the views it joins.
     monkeypatch.setattr(process_pipeline, "path_jumps", lambda names, centres: path_jumps(names, centres, 0.0))
+    import pycolmap
+
+    def no_calibration(*args, **kwargs):
+        raise AssertionError("the view graph was calibrated without --calibrate-view-graph")
+
+    monkeypatch.setattr(pycolmap, "calibrate_view_graph", no_calibration)
     assert cli_main(argv) == 0
     printed = capsys.readouterr().out
     assert re.search(r"warning: the camera path jumps from view_00.png to view_01.png, [\d.]+x its median", printed)
@@ -304,3 +310,12 @@ def test_the_path_check_finds_a_seam_and_leaves_a_collection_alone():
     assert not path_jumps(names[:5], circle[:5])["checked"]
     with pytest.raises(ValueError, match="one \\[3\\] centre per name"):
         path_jumps(names, circle[:, :2])
+
+
+def test_names_sort_by_their_numbers():
+    """The path check's order: numbers inside names by value, case aside; a digit that is not a
+    decimal (a superscript) stays text instead of failing."""
+    from cdcgs.process.checks import natural_key
+
+    names = ["IMG_10.jpg", "img_9.jpg", "v1²3.png", "IMG_100.jpg", "IMG_2.jpg"]
+    assert sorted(names, key=natural_key) == ["IMG_2.jpg", "img_9.jpg", "IMG_10.jpg", "IMG_100.jpg", "v1²3.png"]

@@ -27,7 +27,7 @@ MIN_VIEWS = 8
 
 def natural_key(name: str) -> list:
     """Sort key that orders the numbers inside names by value (IMG_9 before IMG_10)."""
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+    return [int(part) if part.isdecimal() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
 def path_jumps(names: list[str], centres: np.ndarray, factor: float = JUMP_FACTOR) -> dict:

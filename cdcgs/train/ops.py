@@ -50,7 +50,9 @@ def make_optimizer(
         raise ValueError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {kind!r}")
     groups = [{"params": [model.params[name]], "name": name} for name in PARAM_NAMES]
     if kind == "torch-adam":
-        optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+        # Fused on CUDA (torch before 2.4 has no fused Adam on the CPU, where its loop runs instead).
+        cuda = model.params[PARAM_NAMES[0]].device.type == "cuda"
+        optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True if cuda else None)
     else:
         optimizer = FusedAdam(groups, lr=0.0, eps=1e-15)
     set_hyperparameters(optimizer, lrs, extent, batch_rule)
