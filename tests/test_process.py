@@ -235,7 +235,9 @@ def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsy
     assert cli_main(["train", "--data", str(folder), "--out", str(tmp_path / "run")]) == 2
     assert f"cdcgs process {folder} --out SCENE" in capsys.readouterr().err
     out = tmp_path / "scene"
-    argv = ["process", str(folder), "--out", str(out), "--mapper", "global", "--threads", "2", "--no-progress"]
+    # One thread: the same model every run. With two, one CI run of 2026-11-26 came out 28 degrees
+    # off, where ten other runs passed (docs/process.md).
+    argv = ["process", str(folder), "--out", str(out), "--mapper", "global", "--threads", "1", "--no-progress"]
     # Every step counts as a jump (factor 0): the command prints each with the views it joins.
     monkeypatch.setattr(process_pipeline, "path_jumps", lambda names, centres: path_jumps(names, centres, 0.0))
     import pycolmap
@@ -250,7 +252,7 @@ def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsy
     assert "--mapper global may join them" not in printed  # it is the global mapper already
     assert re.search(rf"registered (2[34]) of {VIEWS} images, \d+ points", printed), printed
     summary = json.load(open(out / "process.json"))
-    assert "global mapping" in printed and summary["mapper"] == "global" and summary["options"]["threads"] == 2
+    assert "global mapping" in printed and summary["mapper"] == "global" and summary["options"]["threads"] == 1
     assert len(load_scene(str(out), test_every=0).train) >= 23
     assert summary["options"]["calibrate_view_graph"] is False
     rotation_error, centre_error, _ = pose_errors(out, {f"view_{i:02d}.png": p for i, p in enumerate(poses)})
