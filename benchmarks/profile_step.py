@@ -51,8 +51,10 @@ import cdcgs.render
 from cdcgs.io import read_ply
 from cdcgs.train import trainer as trainer_module
 from cdcgs.train.config import DataConfig, TrainConfig
+from cdcgs.train.mcmc import MCMC
 from cdcgs.train.model import GaussianModel
 from cdcgs.train.ops import make_optimizer
+from cdcgs.train.strategies import strategy_class
 from cdcgs.train.trainer import Trainer
 
 # The parts of a step, in the order they run; each is a labelled range in the profile.
@@ -133,7 +135,10 @@ def prepared(args, count: int, out: str) -> Trainer:
         checkpoint_every=0,
         fused_loss=not args.reference_loss,
     )
-    trainer = Trainer(config)
+    options = {}
+    if issubclass(strategy_class(args.strategy), MCMC):  # its budget: the profiled count
+        options["target_gaussians"] = count
+    trainer = Trainer(config, strategy_options=options)
     trainer._setup()
     generator = torch.Generator(device=trainer.device).manual_seed(0)
     source = GaussianModel.from_ply(read_ply(args.ply), device=trainer.device) if args.ply else trainer.model
@@ -395,7 +400,7 @@ def main(argv=None) -> int:
     parser.add_argument("--images", default=None, help="image folder of the scene, e.g. images")
     parser.add_argument("--ply", default=None, help="a trained model to start from (else the scene's points)")
     parser.add_argument("--gaussians", type=int, nargs="+", default=[1_000_000, 3_000_000])
-    parser.add_argument("--strategy", default="3dgs")
+    parser.add_argument("--strategy", default="3dgs", help="preset (mcmc ones with the profiled count as budget)")
     parser.add_argument("--at", type=int, default=20_000, help="iteration counter of the window")
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--warmup", type=int, default=20)

@@ -148,6 +148,16 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
         assert row["complexity_pass"]["wall_ms_per_view_one_at_a_time"] > 0
     printed = capsys.readouterr().out
     assert "| ms per step (wall) |" in printed and "| Γ pass: ms per view (wall), one view at a time |" in printed
+    # 3DGS-MCMC's step (its noise and regularisers), at the profiled count as its budget.
+    mcmc = tmp_path / "mcmc.json"
+    assert (
+        profile_step.main(
+            [*argv[:2], "--gaussians", "200", "--steps", "1", "--warmup", "1", "--strategy", "mcmc", "--out", str(mcmc)]
+        )
+        == 0
+    )
+    (row,) = json.loads(mcmc.read_text())["rows"]
+    assert row["gaussians"] == 200 and row["parts"]["strategy after step"]["host_ms"] > 0
     boxes = tmp_path / "boxes.json"
     assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0
     for exact, box in zip(rows, json.loads(boxes.read_text())["rows"]):
@@ -319,6 +329,13 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     config = json.loads((out / "3dgs_sh-every-5_seed-3" / "config.json").read_text())["train"]
     assert (config["sh_every"], config["seed"], config["strategy"]) == (5, 3, "3dgs")
     assert "| 3dgs@sh-every=5@seed=3 |" in docs.read_text()
+    # Options that a 20-iteration warm-up cannot take (a count to land on at a densification step
+    # past it): the warm-up trains the base run, the timed run its own options.
+    own = "3dgs@target-gaussians=260@densify-from=2@densify-every=4@densify-until=28"
+    assert training_table.main([*argv, "--train-option=--device=cpu", "--iters", "30", "--runs", own]) == 0
+    assert "its own options need more than 20 iterations; the warm-up trains 3dgs" in capsys.readouterr().out
+    metrics = json.loads((out / training_table.folder_name(own) / "metrics.json").read_text())
+    assert (metrics["iterations"], metrics["num_gaussians"]) == (30, 260)
     for bad in ("3dgs@=1", "3dgs@--seed=1", "3dgs@seed=", "nonsense@seed=1"):
         with pytest.raises(SystemExit):
             training_table.main([*argv, "--runs", bad])
