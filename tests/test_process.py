@@ -253,6 +253,10 @@ def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsy
     assert re.search(rf"registered (2[34]) of {VIEWS} images, \d+ points", printed), printed
     summary = json.load(open(out / "process.json"))
     assert "global mapping" in printed and summary["mapper"] == "global" and summary["options"]["threads"] == 1
+    # Each stage's time is printed as it ends, in order, the same as process.json's.
+    lines = [f"{name}: {seconds:.1f} s" for name, seconds in summary["seconds"].items()]
+    assert list(summary["seconds"]) == ["images", "features", "matching", "mapping", "undistortion", "downscaling"]
+    assert [printed.index(line) for line in lines] == sorted(printed.index(line) for line in lines), printed
     assert len(load_scene(str(out), test_every=0).train) >= 23
     assert summary["options"]["calibrate_view_graph"] is False
     rotation_error, centre_error, _ = pose_errors(out, {f"view_{i:02d}.png": p for i, p in enumerate(poses)})

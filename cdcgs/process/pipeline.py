@@ -99,14 +99,18 @@ class _Stages:
         from tqdm import tqdm
 
         self.seconds: dict[str, float] = {}
+        self.write = tqdm.write
         self.bar = tqdm(total=len(names), desc="process", unit="stage", disable=not progress)
 
     @contextmanager
     def stage(self, name: str):
+        """Times the stage; its time is printed as it ends (above the bar), so that a run cut
+        short, or one that logs without bars, still shows the stages it finished."""
         self.bar.set_description(name)
         start = time.perf_counter()
         yield
         self.seconds[name] = round(time.perf_counter() - start, 3)
+        self.write(f"{name}: {self.seconds[name]:.1f} s")
         self.bar.update(1)
 
     def close(self):
