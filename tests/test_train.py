@@ -123,6 +123,22 @@ def test_allocator_now_reads_torchs_counters_on_cuda_only(monkeypatch):
     assert asked == [torch.device("cuda", 1)] * 2
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="expandable segments exist on Linux only")
+def test_the_command_line_asks_torch_for_expandable_segments_unless_told_otherwise():
+    """Set before anything allocates on CUDA, in every command's process (and so its torchrun
+    workers); a value the user set stays."""
+    probe = "import os; from cdcgs.cli import main; main(['weights', '--help']); print(os.environ.get('PYTORCH_CUDA_ALLOC_CONF'))"
+
+    def setting(**env):
+        environment = {k: v for k, v in os.environ.items() if k != "PYTORCH_CUDA_ALLOC_CONF"} | env
+        done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env=environment, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip().splitlines()[-1]
+
+    assert setting() == "expandable_segments:True"
+    assert setting(PYTORCH_CUDA_ALLOC_CONF="expandable_segments:False") == "expandable_segments:False"
+
+
 def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):
     Trainer(tiny_config(tiny_scene, tmp_path, iters=5), SHORT).run()
     before = (tmp_path / "checkpoint.pt").read_bytes()
