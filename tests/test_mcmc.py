@@ -76,6 +76,25 @@ def test_position_noise_matches_a_float64_reference():
         expected[i] = covariance @ z[i] * gate * 5e5 * 1.6e-4 * 3.0
     torch.testing.assert_close(noise.double(), expected, rtol=1e-4, atol=1e-12)
     assert noise[5].abs().max() < 1e-20 < noise[0].abs().max()  # opaque Gaussians stay put
+    # Added in place to a tensor (the training adds it to the means), the same draws.
+    means = model.params["means"].detach().clone()
+    again = position_noise(model, 1.6e-4 * 3.0, 5e5, 100.0, 0.005, torch.Generator().manual_seed(5), out=means)
+    assert again is means
+    torch.testing.assert_close(means, model.params["means"].detach() + noise, rtol=0, atol=1e-7)
+    # Unnormalised quaternions are normalised first, as torch's normalize does.
+    with torch.no_grad():
+        model.params["quats"].mul_(7.5)
+    scaled = position_noise(model, 1.6e-4 * 3.0, 5e5, 100.0, 0.005, torch.Generator().manual_seed(5))
+    torch.testing.assert_close(scaled, noise, rtol=1e-5, atol=1e-12)
+    bad_outs = (
+        torch.zeros(6, 3, dtype=torch.float64),
+        torch.zeros(5, 3),
+        torch.zeros(3, 6).t(),
+        torch.zeros(6, 3, device="meta"),
+    )
+    for bad in bad_outs:
+        with pytest.raises(ValueError, match="out must be a contiguous float32"):
+            position_noise(model, 1e-3, 5e5, 100.0, 0.005, torch.Generator().manual_seed(5), out=bad)
 
 
 def test_draws_with_replacement_invert_the_float64_cumulative_sum():

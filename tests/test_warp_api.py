@@ -39,6 +39,7 @@ PUBLIC_KERNEL_API = {
     "ssim_l1_launch_size",
     "selective_adam_kernel",
     "fused_adam_kernel",
+    "mcmc_noise_kernel",
 }
 
 
@@ -507,3 +508,46 @@ def test_projection_writes_every_entry_and_flags_nonfinite_inputs(device):
         padded = wp.zeros(4, dtype=wp.int32, device=device)
         project(inputs, 0, padded[:2])
         assert padded.numpy().tolist() == [expected[0], max(expected[1:]), 0, 0], trial
+
+
+def test_mcmc_noise_kernel_from_warp_arrays_alone(device):
+    """The kernel as a ``wp.launch`` user runs it, on Warp arrays: each mean moves by
+    R diag(s²) Rᵀ z · sigmoid(-k (o - t)) · scale, against numpy in float64 (the rotation from
+    the quaternion written out, as 3DGS's code builds it)."""
+    import numpy as np
+    import warp as wp
+
+    from cdcgs.kernels import mcmc_noise_kernel
+
+    rng = np.random.default_rng(3)
+    n = 7
+    quats = rng.normal(size=(n, 4)) * 2.0  # not unit: the kernel normalises
+    log_scales = rng.normal(-3.0, 0.5, size=(n, 3))
+    logits = np.array([-7.0, -5.3, -4.0, -2.0, 0.0, 2.0, 6.0])  # opacities from 0.0009 to 0.998
+    z = rng.normal(size=(n, 3))
+    means = rng.normal(size=(n, 3))
+    k, t, scale = 100.0, 0.005, 5e5 * 1.6e-4
+    arrays = [
+        wp.array(a.astype(np.float32), dtype=d, device=device)
+        for a, d in ((quats, wp.vec4), (log_scales, wp.vec3), (logits, wp.float32), (z, wp.vec3))
+    ]
+    noise = wp.zeros(n, dtype=wp.vec3, device=device)  # out: zeros, to get the noise itself
+    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale], outputs=[noise], device=device)
+    moved = wp.array(means.astype(np.float32), dtype=wp.vec3, device=device)  # out: the means
+    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale], outputs=[moved], device=device)
+    expected = np.zeros((n, 3))
+    for i in range(n):
+        w, x, y, c = quats[i] / np.linalg.norm(quats[i])
+        r = np.array(
+            [
+                [1 - 2 * (y * y + c * c), 2 * (x * y - w * c), 2 * (x * c + w * y)],
+                [2 * (x * y + w * c), 1 - 2 * (x * x + c * c), 2 * (y * c - w * x)],
+                [2 * (x * c - w * y), 2 * (y * c + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        opacity = 1 / (1 + np.exp(-logits[i]))
+        gate = 1 / (1 + np.exp(k * (opacity - t)))
+        expected[i] += r @ np.diag(np.exp(2 * log_scales[i])) @ r.T @ z[i] * gate * scale
+    np.testing.assert_allclose(noise.numpy(), expected, rtol=2e-4, atol=1e-12)
+    assert np.abs(noise.numpy()[-1]).max() < 1e-30 < np.abs(noise.numpy()[0]).max()  # the opaque one stays put
+    np.testing.assert_allclose(moved.numpy(), means + expected, rtol=0, atol=1e-6)  # added in place

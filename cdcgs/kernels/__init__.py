@@ -5,7 +5,8 @@ and their adjoints, ``bin_gaussians`` (the tiles' depth-sorted lists), the blend
 with ``dim=tiles_x * tiles_y * BLOCK_SIZE``, ``block_dim=BLOCK_SIZE``), the CDC-GS complexity pass,
 the exact KNN (``knn_search``), the training loss, L1 + D-SSIM, fused (``ssim_l1_*``: two
 separable passes forward, two backward), and Adam on every row or on selected ones
-(``fused_adam_kernel``: every parameter in one launch; ``selective_adam_kernel``: one parameter).
+(``fused_adam_kernel``: every parameter in one launch; ``selective_adam_kernel``: one parameter),
+and 3DGS-MCMC's noise on the means (``mcmc_noise_kernel``).
 ``examples/warp_launch.py`` renders an image with them.
 
 The binning kernels that ``bin_gaussians`` runs stay importable from ``cdcgs.kernels.binning`` for
@@ -25,6 +26,7 @@ from .loss import (
     ssim_l1_forward_rows_kernel,
     ssim_l1_launch_size,
 )
+from .mcmc import mcmc_noise_kernel
 from .projection import (
     SH_BLOCK,
     Camera,
@@ -50,6 +52,7 @@ __all__ = [
     "fused_adam_kernel",
     "knn_search",
     "make_camera",
+    "mcmc_noise_kernel",
     "project_gaussians_kernel",
     "selective_adam_kernel",
     "sh_to_color_backward_kernel",

@@ -32,9 +32,11 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
+import warp as wp
 
+from .._interop import launch, warp_scope, wp_arg
 from ..errors import OptionError
-from ..geometry import quat_to_rotation
+from ..kernels.mcmc import mcmc_noise_kernel
 from . import ops
 from .cdc import Consistency
 from .model import GaussianModel
@@ -96,16 +98,44 @@ def relocation(
 
 
 def position_noise(
-    model: GaussianModel, lr: float, noise_lr: float, k: float, t: float, generator: torch.Generator
+    model: GaussianModel,
+    lr: float,
+    noise_lr: float,
+    k: float,
+    t: float,
+    generator: torch.Generator,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """[N, 3] 3DGS-MCMC's perturbation of the means: Σ z sigmoid(-k (o - t)) noise_lr lr, with
-    Σ = R S^2 R^T of each Gaussian and z ~ N(0, I) drawn from ``generator``."""
-    rotation = quat_to_rotation(model.params["quats"].detach())
-    scales = model.scales().detach()
-    covariance = rotation @ torch.diag_embed(scales * scales) @ rotation.transpose(-1, -2)
-    gate = torch.sigmoid(-k * (model.opacities().detach() - t))
+    Σ = R S^2 R^T of each Gaussian and z ~ N(0, I) drawn from ``generator``; added to ``out``
+    ([N, 3] float32, e.g. the means) when given, and returned. One kernel
+    (:data:`cdcgs.kernels.mcmc.mcmc_noise_kernel`) after the draw."""
+    params = model.params
     z = torch.randn(model.num, 3, device=model.device, generator=generator)
-    return (covariance @ (z * (gate * noise_lr * lr)[:, None])[..., None])[..., 0]
+    target = torch.zeros_like(z) if out is None else out
+    if (
+        target.shape != z.shape
+        or target.dtype != torch.float32
+        or not target.is_contiguous()
+        or target.device != z.device
+    ):
+        raise ValueError(f"position_noise: out must be a contiguous float32 [{model.num}, 3] tensor on {z.device}")
+    with warp_scope(model.device):
+        launch(
+            mcmc_noise_kernel,
+            model.num,
+            inputs=[
+                wp_arg(params["quats"].detach(), wp.vec4),
+                wp_arg(params["log_scales"].detach(), wp.vec3),
+                wp_arg(params["opacity_logits"].detach(), wp.float32),
+                wp_arg(z, wp.vec3),
+                float(k),
+                float(t),
+                float(noise_lr * lr),
+            ],
+            outputs=[wp_arg(target, wp.vec3)],
+        )
+    return target
 
 
 @dataclass(kw_only=True)
@@ -200,9 +230,9 @@ class MCMC(Consistency, StrategyOptions):
         if self.noise_until is not None and ctx.step >= self.noise_until:
             return
         lr = next(g["lr"] for g in ctx.optimizer.param_groups if g["name"] == "means")
-        with torch.no_grad():
-            noise = position_noise(ctx.model, lr, self.noise_lr, self.noise_k, self.noise_t, ctx.generator)
-            ctx.model.params["means"].add_(noise)
+        with torch.no_grad():  # added to the means in place
+            means = ctx.model.params["means"].detach()
+            position_noise(ctx.model, lr, self.noise_lr, self.noise_k, self.noise_t, ctx.generator, out=means)
 
     # --- pieces -------------------------------------------------------------------------------
 
