@@ -2,11 +2,12 @@
 option (:class:`OptionError`). The command line reports both in one line and exits with 2; every
 other exception is a defect and keeps its traceback. :class:`NonFiniteError` is the render's
 refusal of NaN or infinite inputs (a ValueError, as before), which the trainer turns into a report
-of where the run's numbers went wrong."""
+of where the run's numbers went wrong. :class:`CapacityError` says that a render binned into a
+fixed number of slots (``rasterize(capacity=...)``) needed more."""
 
 import os
 
-__all__ = ["InputError", "NonFiniteError", "OptionError"]
+__all__ = ["CapacityError", "InputError", "NonFiniteError", "OptionError"]
 
 
 class InputError(ValueError):
@@ -32,3 +33,13 @@ class NonFiniteError(ValueError):
     def __init__(self, name: str):
         self.name = name
         super().__init__(f"{name} has non-finite values (NaN or inf)")
+
+
+class CapacityError(RuntimeError):
+    """A render binned into ``capacity`` (tile, Gaussian) slots had ``needed`` pairs: its image and
+    gradients miss pairs and must be discarded; render again with a capacity of at least ``needed``.
+    Raised by :meth:`cdcgs.render.RasterizeInfo.check`."""
+
+    def __init__(self, needed: int, capacity: int):
+        self.needed, self.capacity = needed, capacity
+        super().__init__(f"the view has {needed} (tile, Gaussian) pairs, more than the capacity {capacity}")

@@ -22,11 +22,11 @@ from ._interop import torch_tensor as _torch
 from ._interop import warp_scope as _warp_scope
 from ._interop import wp_arg as _arg
 from ._interop import wp_array as _wp
-from .errors import NonFiniteError
+from .errors import CapacityError, NonFiniteError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
 from .kernels._statistics import accumulate_statistics_kernel
-from .kernels.binning import BinningStart, TileBins, finish_binning, start_binning
+from .kernels.binning import BinningStart, TileBins, finish_binning, finish_binning_within, start_binning
 from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
 from .kernels.projection import (
     SH_BLOCK,
@@ -87,6 +87,11 @@ class RasterizeInfo:
             ``render_depth`` was asked for, else None. Differentiable.
         means2d_absgrad: [N, 2] sum over pixels of |d loss / d means2d| per pixel (AbsGS), filled
             by the backward pass when :meth:`retain_absgrad` asked for it before; else None.
+        pending: for a render with ``capacity``, what it did not read on the host: the [K + 2]
+            int32 device tensor of the inputs' non-finite flags, then whether the pairs overflowed
+            the slots, then their count (:meth:`check` reads it); None otherwise, where the render
+            read its count and checked its inputs itself. ``num_intersections`` is then the
+            capacity, and ``sorted_gauss_ids`` ends with empty slots (-1) that belong to no tile.
     """
 
     width: int
@@ -106,6 +111,26 @@ class RasterizeInfo:
     transmittance: torch.Tensor
     depth: torch.Tensor | None
     _absgrad: dict = field(default_factory=dict, repr=False)  # shared with the blend's backward pass
+    pending: torch.Tensor | None = None
+    _pending_names: tuple = field(default=(), repr=False)
+
+    def check(self) -> int:
+        """The view's number of (tile, Gaussian) pairs, read from the device (one synchronisation).
+
+        For a render with ``capacity`` it also raises what that render did not: NonFiniteError
+        naming an input that held NaN or inf, then CapacityError when the pairs overflowed the
+        slots (the image and the gradients are then wrong). Without ``capacity``: the count, which
+        the render read already."""
+        if self.pending is None:
+            return self.num_intersections
+        values = self.pending.tolist()
+        for name, bad in zip(self._pending_names, values):
+            if bad:
+                raise NonFiniteError(name)
+        overflowed, count = values[-2:]
+        if overflowed:
+            raise CapacityError(count, self.num_intersections)
+        return count
 
     @property
     def tiles_x(self) -> int:
@@ -637,6 +662,7 @@ def rasterize(
     antialiased: bool = False,
     near_plane: float | None = None,
     render_depth: bool = False,
+    capacity: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
     """Render 3D Gaussians from one pinhole camera, differentiably.
 
@@ -661,6 +687,13 @@ def rasterize(
         near_plane: Gaussians with camera z below this are culled (default 0.01; with ``camera``,
             the prepared camera's).
         render_depth: also return the expected depth map in ``info.depth``.
+        capacity: bin the view's (tile, Gaussian) pairs into this many slots instead of reading
+            their count on the host: the render then never waits for the device (no
+            synchronisation), and it checks nothing it would have to read back. Call
+            ``info.check()`` later (once, when convenient): it raises NonFiniteError for an input
+            that held NaN or inf and CapacityError (with ``.needed``) when the pairs did not fit,
+            in which case the image and the gradients are wrong; otherwise the image, alpha and
+            gradients are those of a render without ``capacity``. The sort's work grows with it.
 
     Returns:
         image [H, W, 3], alpha [H, W] and a :class:`RasterizeInfo`. All float32 on ``means``' device.
@@ -714,6 +747,10 @@ def rasterize(
         if not all(math.isfinite(v) for v in values):
             raise NonFiniteError("background")
         background = means.new_tensor(values)
+    if capacity is not None and (isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1):
+        raise ValueError(
+            f"capacity must be a positive int, slots for the view's (tile, Gaussian) pairs; got {capacity!r}"
+        )
     prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
     width, height = prepared.width, prepared.height
 
@@ -746,8 +783,14 @@ def rasterize(
                 means, sh, sh_rest, sh_degree, prepared.center, radii, nonfinite[len(checked) - 1 :]
             )
 
-        read_count = _count_reader(nonfinite, list(checked))
-        bins = _bin(means2d, radii, depths, conics, composited_opacities, width, height, read_count)
+        pending = None
+        if capacity is None:
+            read_count = _count_reader(nonfinite, list(checked))
+            bins = _bin(means2d, radii, depths, conics, composited_opacities, width, height, read_count)
+        else:  # nothing read back: the flags, the overflow and the count wait for info.check()
+            start = _start_bin(means2d, radii, depths, conics, composited_opacities, width, height)
+            bins, overflow = finish_binning_within(start, capacity)
+            pending = torch.cat([nonfinite, _torch(overflow), _torch(start.offsets)[-1:]])
         absgrad_request = {}  # info.retain_absgrad() puts the AbsGS sums' tensor here for the backward pass
         image, transmittance, depth_sum, last = _Blend.apply(
             means2d, conics, colors, composited_opacities, depths, background, bins, width, height, absgrad_request
@@ -758,6 +801,8 @@ def rasterize(
         depth = torch.where(alpha > 0, depth_sum / alpha.clamp_min(1e-10), torch.zeros_like(depth_sum))
     projection = (means2d, conics, depths, composited_opacities, radii)
     info = _info(width, height, projection, bins, colors, last, transmittance, depth, absgrad_request)
+    if pending is not None:
+        info.pending, info._pending_names = pending, tuple(checked)
     return image, alpha, info
 
 

@@ -433,3 +433,46 @@ def test_sh_in_two_tensors_renders_and_differentiates_as_one(device, degree):
         cdcgs.rasterize(means, quats, scales, opacities, sh, sh_rest=rest, **camera)
     with pytest.raises(ValueError, match="sh_rest needs sh"):
         cdcgs.rasterize(means, quats, scales, opacities, colors=sh[:, 0], sh_rest=rest, **camera)
+
+
+def test_a_render_with_capacity_reads_nothing_and_checks_later(device, monkeypatch):
+    """``capacity``: the pairs go into fixed slots and nothing is read back (the count reader is
+    never called). With room, the image, alpha and gradients are those of the counted render and
+    ``info.check()`` gives its count; one slot short, check() raises CapacityError with the count
+    needed; NaN in an input is named by check(), not by the render."""
+    from cdcgs.errors import CapacityError, NonFiniteError
+
+    scene = make_scene(300, 61, 37, seed=4).to(device)
+    weights = torch.rand(37, 61, 3, generator=torch.Generator().manual_seed(1)).to(device)
+
+    def render(capacity=None, tensors=None):
+        tensors = tensors or [t.clone().requires_grad_(True) for t in scene.tensors()]
+        camera = {"viewmat": scene.viewmat, "K": scene.K, "width": scene.width, "height": scene.height}
+        image, alpha, info = cdcgs.rasterize(*tensors, **camera, capacity=capacity)
+        ((image * weights).sum() + alpha.sum()).backward()
+        return image.detach(), alpha.detach(), [t.grad for t in tensors], info
+
+    image, alpha, grads, info = render()
+    count = info.num_intersections
+    assert info.pending is None and info.check() == count > 0
+    exact = device == "cpu"  # on CUDA the backward's atomic sums may add in another order
+    monkeypatch.setattr(cdcgs.render, "_count_reader", lambda *a: pytest.fail("a render with capacity read the count"))
+    for capacity in (count, 2 * count):
+        image_c, alpha_c, grads_c, info_c = render(capacity)
+        assert info_c.num_intersections == capacity and info_c.check() == count
+        assert torch.equal(image_c, image) and torch.equal(alpha_c, alpha)
+        for got, want in zip(grads_c, grads):
+            torch.testing.assert_close(got, want, rtol=0 if exact else 1e-5, atol=0 if exact else 1e-6)
+    *_, short = render(count - 1)
+    with pytest.raises(CapacityError, match=f"has {count} .* more than the capacity {count - 1}") as raised:
+        short.check()
+    assert (raised.value.needed, raised.value.capacity) == (count, count - 1)
+    tensors = [t.clone().requires_grad_(True) for t in scene.tensors()]
+    with torch.no_grad():
+        tensors[0][100, 1] = float("nan")  # a mean: the render without capacity would refuse it
+    *_, poisoned = render(2 * count, tensors)
+    with pytest.raises(NonFiniteError, match="means has non-finite values"):
+        poisoned.check()
+    for bad in (0, -3, 2.5, True, "100"):
+        with pytest.raises(ValueError, match="capacity must be a positive int"):
+            cdcgs.rasterize(*scene.tensors(), viewmat=scene.viewmat, K=scene.K, width=61, height=37, capacity=bad)
