@@ -78,10 +78,11 @@ def test_position_noise_matches_a_float64_reference():
     assert noise[5].abs().max() < 1e-20 < noise[0].abs().max()  # opaque Gaussians stay put
     # Added in place to a tensor (the training adds it to the means), the same draws.
     means = model.params["means"].detach().clone()
+    version = means._version
     again = position_noise(model, 1.6e-4 * 3.0, 5e5, 100.0, 0.005, torch.Generator().manual_seed(5), out=means)
-    assert again is means
+    assert again is means and means._version > version  # torch is told of the write, as of an in-place op
     torch.testing.assert_close(means, model.params["means"].detach() + noise, rtol=0, atol=1e-7)
-    # Unnormalised quaternions are normalised first, as torch's normalize does.
+    # Unnormalised quaternions are normalised first, as the projection does.
     with torch.no_grad():
         model.params["quats"].mul_(7.5)
     scaled = position_noise(model, 1.6e-4 * 3.0, 5e5, 100.0, 0.005, torch.Generator().manual_seed(5))

@@ -76,11 +76,15 @@ def test_without_a_mask_it_is_torch_adam(device):
     b = a.detach().clone().requires_grad_()
     ours = FusedAdam([a], lr=0.003, eps=1e-15)
     theirs = torch.optim.Adam([b], lr=0.003, eps=1e-15)
-    for _ in range(5):
+    for step in range(5):
         grad = torch.randn(50, 3, generator=g).to(device)
         a.grad, b.grad = grad.clone(), grad.clone()
+        version = a._version
         ours.step()
         theirs.step()
+        # Written through its address, yet torch sees the update as it sees its own Adam's: caches
+        # keyed on the version (the trainer's Γ-pass scales and opacities) must not go stale.
+        assert a._version > version, f"step {step}: FusedAdam left the parameter's version as it was"
     torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
     torch.testing.assert_close(ours.state[a]["exp_avg_sq"], theirs.state[b]["exp_avg_sq"])
 
@@ -428,3 +432,18 @@ def test_a_fused_torch_adam_keeps_its_flag_and_finds_its_step_counts_on_the_devi
         assert group["fused"] is True and fused.state[p]["step"].device == p.device
         assert fused.state[p]["step"].dtype == torch.float32 and float(fused.state[p]["step"]) == 1.0
     fused.step()  # goes on from step 1
+
+
+def test_the_gamma_pass_sees_the_scales_and_opacities_after_an_adam_step(tiny_scene, tmp_path):
+    """The trainer computes a Γ pass's scales and opacities once and keeps them until a parameter
+    changes, which it learns from torch's version counters: FusedAdam's update, written by a
+    kernel, must count as a change (before, the next pass saw the scales of the pass before)."""
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path / "run"))
+    trainer._setup()
+    trainer._bins(0).finish()
+    for p in trainer.model.params.values():
+        p.grad = torch.ones_like(p)
+    trainer.optimizer.step()
+    trainer._bins(0).finish()
+    torch.testing.assert_close(trainer._shape["scales"], trainer.model.scales().detach(), rtol=0, atol=0)
+    torch.testing.assert_close(trainer._shape["opacities"], trainer.model.opacities().detach(), rtol=0, atol=0)

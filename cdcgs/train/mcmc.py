@@ -33,6 +33,7 @@ from typing import ClassVar
 
 import torch
 import warp as wp
+from torch.autograd.graph import increment_version
 
 from .._interop import launch, warp_scope, wp_arg
 from ..errors import OptionError
@@ -135,6 +136,7 @@ def position_noise(
             ],
             outputs=[wp_arg(target, wp.vec3)],
         )
+    increment_version(target)  # written through its address: what an in-place op would say
     return target
 
 

@@ -17,6 +17,7 @@ import math
 
 import torch
 import warp as wp
+from torch.autograd.graph import increment_version
 
 from .._interop import launch, warp_scope, wp_arg
 from ..kernels.adam import fused_adam_kernel
@@ -93,6 +94,8 @@ class FusedAdam(torch.optim.Optimizer):
                     start,
                     inputs=[wp_arg(tables[0], wp.int64), wp_arg(tables[1], wp.float32), wp_arg(mask, wp.uint8)],
                 )
+        for _, p in updated:  # the kernel wrote through addresses: tell torch, as an in-place op would
+            increment_version(p)
         return loss
 
 
