@@ -40,6 +40,7 @@ sys.path.insert(0, HERE)
 
 from profile_step import PARTS, PartClock, instrumented, prepared
 
+from cdcgs.cli import ask_for_expandable_segments
 from cdcgs.datasets.procedural import make_procedural_scene
 
 KERNELS = "Warp kernels, sorts and scans running on the CPU"
@@ -129,6 +130,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--profile-out", default=None, help="also write the cProfile window's stats here")
     args = parser.parse_args(argv)
+    ask_for_expandable_segments()  # before CUDA allocates: as `cdcgs train` runs
     # One intra-op thread: torch's parallel regions on a busy 2-core machine cost milliseconds
     # (OpenMP waiting for its second thread), which is not the overhead a GPU's host pays.
     torch.set_num_threads(1)

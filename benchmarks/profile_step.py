@@ -48,6 +48,7 @@ from run import STAGES, stage_of
 
 import cdcgs
 import cdcgs.render
+from cdcgs.cli import ask_for_expandable_segments
 from cdcgs.io import read_ply
 from cdcgs.train import trainer as trainer_module
 from cdcgs.train.config import DataConfig, TrainConfig
@@ -422,6 +423,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
+    ask_for_expandable_segments()  # before CUDA allocates: as `cdcgs train` runs
     if not os.path.isdir(args.data):
         parser.error(f"--data {args.data!r} is not a folder")
     if args.ply and not os.path.isfile(args.ply):

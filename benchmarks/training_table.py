@@ -42,6 +42,10 @@ import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)  # the checkout's cdcgs, which the runs use too
+
+from cdcgs.cli import ask_for_expandable_segments
+
 BEGIN, END = "<!-- training-table:begin -->", "<!-- training-table:end -->"
 GSPLAT_RATES = ["--lr-opacity-logits", "0.05", "--scale-rule", "3dgs"]
 DEFAULT_RUNS = ["3dgs", "fast", "cdc", "gsplat"]  # issue 21's side by side
@@ -202,6 +206,7 @@ def train(run: str, args) -> dict:
     scratch = os.path.join(args.out, f".warm-{folder_name(run)}")
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [ROOT, os.environ.get("PYTHONPATH")]))}
     environment.setdefault("CUDA_DEVICE_ORDER", "PCI_BUS_ID")  # CUDA's indices as nvidia-smi's, for the watch
+    ask_for_expandable_segments(environment)  # as `cdcgs train` sets it for itself: gsplat's runs get it too
     for iters, out in ((min(20, args.iters), scratch), (args.iters, folder)):
         print(f"{run}: {' '.join(command(run, args, out, iters)[1:])}", flush=True)
         if out == folder and not on_cpu(args.train_options):  # the timed run: is it alone on its GPU?
@@ -213,7 +218,8 @@ def train(run: str, args) -> dict:
             base, own = parse_run(run)
             if status == USAGE_ERROR and own:  # e.g. --target-gaussians: its densification step is past the warm-up
                 print(
-                    f"{run}: its own options need more than {iters} iterations; the warm-up trains {base}", flush=True
+                    f"{run}: the {iters}-iteration warm-up refused the run's own options; it warms up {base}",
+                    flush=True,
                 )
                 status = subprocess.run(command(base, args, out, iters), cwd=ROOT, env=environment).returncode
         if status != 0:

@@ -587,7 +587,9 @@ def cmd_process(args) -> int:
         overwrite=args.overwrite,
         progress=args.progress,
     )
-    summary = process(args.input, args.out, options)
+    from tqdm import tqdm
+
+    summary = process(args.input, args.out, options, report=tqdm.write)  # each stage's time as it ends, above the bar
     seconds = ", ".join(f"{stage} {t:.1f} s" for stage, t in summary["seconds"].items())
     print(
         f"registered {summary['registered']} of {summary['images']} images, {summary['points']} points, "
@@ -735,14 +737,21 @@ def option_reference() -> str:
 
 # torch's caching allocator keeps the blocks that a growing model leaves behind: on bonsai it held
 # 37-43 GB for 2.3 GB of tensors, 4.2 GB with expandable segments, which took no longer (an H100,
-# docs/benchmarks.md). Read when CUDA first allocates, so it must be set before; a value that the
-# user set (e.g. expandable_segments:False) is kept.
+# docs/benchmarks.md). Read when CUDA first allocates, so it must be set before.
 ALLOCATOR = ("PYTORCH_CUDA_ALLOC_CONF", "expandable_segments:True")
+ALLOCATOR_NAMES = ("PYTORCH_CUDA_ALLOC_CONF", "PYTORCH_ALLOC_CONF")  # torch >= 2.9 reads either
+
+
+def ask_for_expandable_segments(environment=os.environ) -> None:
+    """Set torch's allocator to expandable segments in ``environment`` (a process's, or one for
+    its children), on Linux (the only system that has them) and unless the user set either of
+    torch's variables (e.g. ``expandable_segments:False``)."""
+    if sys.platform.startswith("linux") and not any(name in environment for name in ALLOCATOR_NAMES):
+        environment[ALLOCATOR[0]] = ALLOCATOR[1]
 
 
 def main(argv=None) -> int:
-    if sys.platform.startswith("linux"):  # expandable segments exist on Linux only
-        os.environ.setdefault(*ALLOCATOR)
+    ask_for_expandable_segments()
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING  # no Warp banner or module-load lines in the output

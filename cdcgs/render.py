@@ -56,6 +56,10 @@ __all__ = [
 # atomics, in both.
 SH_BACKWARD_CUDA = "staged"
 
+# The most slots ``rasterize(capacity=...)`` takes: the sort holds twice as many keys, and Warp's
+# launches and sorts index with 32-bit integers.
+MAX_CAPACITY = 2**30
+
 
 @dataclass
 class RasterizeInfo:
@@ -113,6 +117,7 @@ class RasterizeInfo:
     _absgrad: dict = field(default_factory=dict, repr=False)  # shared with the blend's backward pass
     pending: torch.Tensor | None = None
     _pending_names: tuple = field(default=(), repr=False)
+    _pending_stream: object = field(default=None, repr=False)  # the CUDA stream the render queued on
 
     def check(self) -> int:
         """The view's number of (tile, Gaussian) pairs, read from the device (one synchronisation).
@@ -123,7 +128,9 @@ class RasterizeInfo:
         the render read already."""
         if self.pending is None:
             return self.num_intersections
-        values = self.pending.tolist()
+        stream = self._pending_stream
+        with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
+            values = self.pending.tolist()  # on the render's stream, after its work, whatever is current now
         for name, bad in zip(self._pending_names, values):
             if bad:
                 raise NonFiniteError(name)
@@ -687,13 +694,14 @@ def rasterize(
         near_plane: Gaussians with camera z below this are culled (default 0.01; with ``camera``,
             the prepared camera's).
         render_depth: also return the expected depth map in ``info.depth``.
-        capacity: bin the view's (tile, Gaussian) pairs into this many slots instead of reading
-            their count on the host: the render then never waits for the device (no
-            synchronisation), and it checks nothing it would have to read back. Call
-            ``info.check()`` later (once, when convenient): it raises NonFiniteError for an input
-            that held NaN or inf and CapacityError (with ``.needed``) when the pairs did not fit,
-            in which case the image and the gradients are wrong; otherwise the image, alpha and
-            gradients are those of a render without ``capacity``. The sort's work grows with it.
+        capacity: bin the view's (tile, Gaussian) pairs into this many slots (at most
+            ``MAX_CAPACITY``) instead of reading their count on the host: with a ``camera`` (or
+            viewmat and K on the host) the render then never waits for the device, and it checks
+            nothing it would have to read back. Call ``info.check()`` later, before using the
+            result (e.g. before an optimizer step): it raises NonFiniteError for an input that held
+            NaN or inf and CapacityError (with ``.needed``) when the pairs did not fit, in which
+            case the image and the gradients are wrong; otherwise the image, alpha and gradients
+            are those of a render without ``capacity``. The sort's work grows with it.
 
     Returns:
         image [H, W, 3], alpha [H, W] and a :class:`RasterizeInfo`. All float32 on ``means``' device.
@@ -747,9 +755,12 @@ def rasterize(
         if not all(math.isfinite(v) for v in values):
             raise NonFiniteError("background")
         background = means.new_tensor(values)
-    if capacity is not None and (isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1):
+    if capacity is not None and (
+        isinstance(capacity, bool) or not isinstance(capacity, int) or not 1 <= capacity <= MAX_CAPACITY
+    ):
         raise ValueError(
-            f"capacity must be a positive int, slots for the view's (tile, Gaussian) pairs; got {capacity!r}"
+            f"capacity must be a positive int up to {MAX_CAPACITY}, slots for the view's (tile, Gaussian) pairs; "
+            f"got {capacity!r}"
         )
     prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
     width, height = prepared.width, prepared.height
@@ -803,6 +814,8 @@ def rasterize(
     info = _info(width, height, projection, bins, colors, last, transmittance, depth, absgrad_request)
     if pending is not None:
         info.pending, info._pending_names = pending, tuple(checked)
+        if device.type == "cuda":
+            info._pending_stream = torch.cuda.current_stream(device)
     return image, alpha, info
 
 

@@ -333,7 +333,7 @@ def test_training_table_trains_each_run_alone_and_writes_the_table_into_the_docs
     # past it): the warm-up trains the base run, the timed run its own options.
     own = "3dgs@target-gaussians=260@densify-from=2@densify-every=4@densify-until=28"
     assert training_table.main([*argv, "--train-option=--device=cpu", "--iters", "30", "--runs", own]) == 0
-    assert "its own options need more than 20 iterations; the warm-up trains 3dgs" in capsys.readouterr().out
+    assert "the 20-iteration warm-up refused the run's own options; it warms up 3dgs" in capsys.readouterr().out
     metrics = json.loads((out / training_table.folder_name(own) / "metrics.json").read_text())
     assert (metrics["iterations"], metrics["num_gaussians"]) == (30, 260)
     for bad in ("3dgs@=1", "3dgs@--seed=1", "3dgs@seed=", "nonsense@seed=1"):

@@ -325,3 +325,24 @@ def test_names_sort_by_their_numbers():
 
     names = ["IMG_10.jpg", "img_9.jpg", "v1²3.png", "IMG_100.jpg", "IMG_2.jpg"]
     assert sorted(names, key=natural_key) == ["IMG_2.jpg", "img_9.jpg", "IMG_10.jpg", "IMG_100.jpg", "v1²3.png"]
+
+
+def test_each_stage_reports_its_time_as_it_ends_and_a_failed_one_none():
+    """The library prints nothing by itself; with ``report``, a stage's line comes when the stage
+    ends (before the next begins), and a stage that fails reports nothing."""
+    from cdcgs.process.pipeline import _Stages
+
+    lines = []
+    stages = _Stages(["images", "features", "matching"], progress=False, report=lines.append)
+    with stages.stage("images"):
+        pass
+    with stages.stage("features"):
+        assert lines == [f"images: {stages.seconds['images']:.1f} s"], "reported before the next stage began"
+    with pytest.raises(RuntimeError), stages.stage("matching"):
+        raise RuntimeError("no matches")
+    stages.close()
+    assert [line.split(":")[0] for line in lines] == ["images", "features"]
+    quiet = _Stages(["images"], progress=False)  # no report: nothing printed, the times kept
+    with quiet.stage("images"):
+        pass
+    assert list(quiet.seconds) == ["images"]

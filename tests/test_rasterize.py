@@ -473,6 +473,31 @@ def test_a_render_with_capacity_reads_nothing_and_checks_later(device, monkeypat
     *_, poisoned = render(2 * count, tensors)
     with pytest.raises(NonFiniteError, match="means has non-finite values"):
         poisoned.check()
-    for bad in (0, -3, 2.5, True, "100"):
+    for bad in (0, -3, 2.5, True, "100", cdcgs.render.MAX_CAPACITY + 1):
         with pytest.raises(ValueError, match="capacity must be a positive int"):
             cdcgs.rasterize(*scene.tensors(), viewmat=scene.viewmat, K=scene.K, width=61, height=37, capacity=bad)
+    # The render's other forms: colours, a background tensor, the depth map; and a view of nothing.
+    monkeypatch.undo()  # the counted renders to compare with read their counts
+    camera = cdcgs.prepare_camera(scene.viewmat, scene.K, scene.width, scene.height)
+    means, quats, scales, opacities, sh = scene.tensors()
+    variants = {
+        "colors": {"colors": sh[:, 0].clone()},
+        "background": {"sh": sh, "background": torch.tensor([0.2, 0.5, 0.9], device=device)},
+        "depth": {"sh": sh, "render_depth": True},
+    }
+    for name, extra in variants.items():
+        counted = cdcgs.rasterize(means, quats, scales, opacities, camera=camera, **extra)
+        slotted = cdcgs.rasterize(means, quats, scales, opacities, camera=camera, capacity=count + 5, **extra)
+        assert torch.equal(slotted[0], counted[0]) and torch.equal(slotted[1], counted[1]), name
+        if name == "depth":
+            assert torch.equal(slotted[2].depth, counted[2].depth)
+        assert slotted[2].check() == counted[2].num_intersections, name
+    behind = means + torch.tensor([0.0, 0.0, -100.0], device=device) @ scene.viewmat[:3, :3].to(device)
+    *_, nothing = cdcgs.rasterize(behind, quats, scales, opacities, sh, camera=camera, capacity=1)
+    assert nothing.check() == 0
+    if device.startswith("cuda"):  # torch is asked to fail on any synchronisation while it renders
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            cdcgs.rasterize(means, quats, scales, opacities, sh, camera=camera, capacity=count)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")

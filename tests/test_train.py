@@ -130,13 +130,23 @@ def test_the_command_line_asks_torch_for_expandable_segments_unless_told_otherwi
     probe = "import os; from cdcgs.cli import main; main(['weights', '--help']); print(os.environ.get('PYTORCH_CUDA_ALLOC_CONF'))"
 
     def setting(**env):
-        environment = {k: v for k, v in os.environ.items() if k != "PYTORCH_CUDA_ALLOC_CONF"} | env
+        environment = {k: v for k, v in os.environ.items() if "ALLOC_CONF" not in k} | env
         done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env=environment, capture_output=True, text=True)
         assert done.returncode == 0, done.stderr
         return done.stdout.strip().splitlines()[-1]
 
     assert setting() == "expandable_segments:True"
     assert setting(PYTORCH_CUDA_ALLOC_CONF="expandable_segments:False") == "expandable_segments:False"
+    assert setting(PYTORCH_ALLOC_CONF="expandable_segments:False") == "None"  # torch >= 2.9's name counts too
+    # The benchmarks set it the same way for the processes they start (gsplat's runs included).
+    from cdcgs.cli import ask_for_expandable_segments
+
+    children = {"PATH": "/bin"}
+    ask_for_expandable_segments(children)
+    assert children == {"PATH": "/bin", "PYTORCH_CUDA_ALLOC_CONF": "expandable_segments:True"}
+    chosen = {"PYTORCH_ALLOC_CONF": "backend:cudaMallocAsync"}
+    ask_for_expandable_segments(chosen)
+    assert chosen == {"PYTORCH_ALLOC_CONF": "backend:cudaMallocAsync"}
 
 
 def test_an_existing_run_is_not_overwritten(tiny_scene, tmp_path, capsys):

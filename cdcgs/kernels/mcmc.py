@@ -7,12 +7,14 @@ Pure Warp. After every optimizer step 3DGS-MCMC moves each mean by
 with z ~ N(0, I) drawn by the caller (so that its generator decides the draws), R the rotation of
 the Gaussian's quaternion (w, x, y, z; normalised here), s = exp(log-scales), o = sigmoid(opacity
 logit) and ``scale`` = noise_lr · lr: Langevin exploration for transparent Gaussians, almost none
-for opaque ones. One thread per Gaussian reads its parameters and adds its noise to ``out``: the
-means themselves, or zeros to get the noise. Built in torch the same takes about 50 small
+for opaque ones. One thread per Gaussian reads its parameters and adds its noise to ``means_out``:
+the means themselves, or zeros to get the noise. Built in torch the same takes about 50 small
 kernels a step (the rotation, the covariance, two batched 3 × 3 products, the gate).
 """
 
 import warp as wp
+
+from .projection import quat_to_rotation
 
 __all__ = ["mcmc_noise_kernel"]
 
@@ -28,16 +30,14 @@ def mcmc_noise_kernel(
     k: float,
     t: float,
     scale: float,
-    out: wp.array(dtype=wp.vec3),
+    means_out: wp.array(dtype=wp.vec3),
 ):
-    """``out[i] += R diag(s²) Rᵀ z[i] · sigmoid(-k (o - t)) · scale`` of Gaussian ``i`` (dim = N)."""
+    """``means_out[i] += R diag(s²) Rᵀ z[i] · sigmoid(-k (o - t)) · scale`` of Gaussian ``i`` (dim = N)."""
     i = wp.tid()
-    q = quats[i]  # (w, x, y, z); Warp's quaternions are (x, y, z, w)
-    q = q / wp.max(wp.length(q), 1.0e-12)  # as torch.nn.functional.normalize
-    rotation = wp.quat_to_matrix(wp.quat(q[1], q[2], q[3], q[0]))
+    rotation = quat_to_rotation(quats[i])  # the projection's: (w, x, y, z), normalised
     s = log_scales[i]
     variance = wp.vec3(wp.exp(2.0 * s[0]), wp.exp(2.0 * s[1]), wp.exp(2.0 * s[2]))
     local = wp.transpose(rotation) * z[i]
     opacity = 1.0 / (1.0 + wp.exp(-opacity_logits[i]))
     gate = 1.0 / (1.0 + wp.exp(k * (opacity - t)))
-    out[i] = out[i] + rotation * wp.cw_mul(variance, local) * (gate * scale)
+    means_out[i] = means_out[i] + rotation * wp.cw_mul(variance, local) * (gate * scale)

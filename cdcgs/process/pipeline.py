@@ -95,22 +95,23 @@ class ProcessOptions:
 class _Stages:
     """Times the stages and shows one bar over them."""
 
-    def __init__(self, names: list[str], progress: bool):
+    def __init__(self, names: list[str], progress: bool, report=None):
         from tqdm import tqdm
 
         self.seconds: dict[str, float] = {}
-        self.write = tqdm.write
+        self.report = report
         self.bar = tqdm(total=len(names), desc="process", unit="stage", disable=not progress)
 
     @contextmanager
     def stage(self, name: str):
-        """Times the stage; its time is printed as it ends (above the bar), so that a run cut
-        short, or one that logs without bars, still shows the stages it finished."""
+        """Times the stage; with ``report``, its time goes there as it ends, so that a run cut
+        short, or one logged without bars, still shows the stages it finished."""
         self.bar.set_description(name)
         start = time.perf_counter()
         yield
         self.seconds[name] = round(time.perf_counter() - start, 3)
-        self.write(f"{name}: {self.seconds[name]:.1f} s")
+        if self.report is not None:
+            self.report(f"{name}: {self.seconds[name]:.1f} s")
         self.bar.update(1)
 
     def close(self):
@@ -216,9 +217,11 @@ def _downscale(images_dir: str, out: str, factors, progress: bool) -> None:
                 image.resize(size, Image.Resampling.LANCZOS).save(os.path.join(target, name), quality=95)
 
 
-def process(input_path: str, out: str, options: ProcessOptions | None = None) -> dict:
+def process(input_path: str, out: str, options: ProcessOptions | None = None, report=None) -> dict:
     """Run structure from motion on ``input_path`` (a folder of images or a video) and write a
     COLMAP scene that ``cdcgs train --data out`` reads; returns the summary (also out/process.json).
+    ``report``: called with a line (``"features: 81.3 s"``) as each stage ends (the command prints
+    them above its bar); None: nothing is printed.
 
     Raises:
         InputError: a missing, unreadable or undecodable input, too few images, an output that
@@ -243,7 +246,7 @@ def process(input_path: str, out: str, options: ProcessOptions | None = None) ->
         for name in previous:
             os.replace(os.path.join(out, name), os.path.join(backup, name))
     try:
-        summary = _process(pycolmap, input_path, out, kind, device, device_name, options)
+        summary = _process(pycolmap, input_path, out, kind, device, device_name, options, report)
     except BaseException:
         for name in OUTPUTS:
             path = os.path.join(out, name)
@@ -265,14 +268,16 @@ def process(input_path: str, out: str, options: ProcessOptions | None = None) ->
     return summary
 
 
-def _process(pycolmap, input_path, out, kind, device, device_name, options) -> dict:
+def _process(pycolmap, input_path, out, kind, device, device_name, options, report) -> dict:
     from ..train.outputs import write_json
 
     os.makedirs(out, exist_ok=True)
     input_dir = os.path.join(out, "input")
     distorted = os.path.join(out, "distorted")
     database = os.path.join(distorted, "database.db")
-    stages = _Stages(["images", "features", "matching", "mapping", "undistortion", "downscaling"], options.progress)
+    stages = _Stages(
+        ["images", "features", "matching", "mapping", "undistortion", "downscaling"], options.progress, report
+    )
     try:
         with stages.stage("images"):
             if kind == "video":
