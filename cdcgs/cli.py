@@ -526,6 +526,14 @@ def _add_process_parser(sub):
         help=f"mapper (default: {d.mapper}; global kept bonsai's published poses where incremental broke them)",
     )
     p.add_argument(
+        "--init-min-tri-angle",
+        type=float,
+        default=d.init_min_tri_angle,
+        metavar="DEGREES",
+        help=f"with --mapper incremental: the smallest triangulation angle of the first image pair "
+        f"(default: {d.init_min_tri_angle:g}, COLMAP's; 4 to 12 kept bonsai whole where 16 broke it)",
+    )
+    p.add_argument(
         "--calibrate-view-graph",
         action="store_true",
         help="with --mapper global: estimate the focal length from the view graph first (COLMAP's "
@@ -578,6 +586,7 @@ def cmd_process(args) -> int:
         per_image_camera=args.per_image_camera,
         mapper=args.mapper,
         calibrate_view_graph=args.calibrate_view_graph,
+        init_min_tri_angle=args.init_min_tri_angle,
         max_image_size=args.max_image_size,
         max_features=args.max_features,
         device=args.device,
@@ -605,7 +614,11 @@ def cmd_process(args) -> int:
         print(
             f"  warning: the camera path jumps from {jump['from']} to {jump['to']}, {jump['ratio']}x its median "
             "step between consecutive images: the model may be in pieces"
-            + ("" if summary["mapper"] == "global" else " (--mapper global may join them; docs/process.md)")
+            + (
+                ""
+                if summary["mapper"] == "global"
+                else " (a smaller --init-min-tri-angle, e.g. 8, or --mapper global may join them; docs/process.md)"
+            )
         )
     print(f"scene in {os.path.abspath(args.out)} (cdcgs train --data {args.out})")
     return 0

@@ -249,7 +249,7 @@ def test_the_command_line_processes_and_train_points_to_it(room, tmp_path, capsy
     assert cli_main(argv) == 0
     printed = capsys.readouterr().out
     assert re.search(r"warning: the camera path jumps from view_00.png to view_01.png, [\d.]+x its median", printed)
-    assert "--mapper global may join them" not in printed  # it is the global mapper already
+    assert "may join them" not in printed  # it is the global mapper already
     assert re.search(rf"registered (2[34]) of {VIEWS} images, \d+ points", printed), printed
     summary = json.load(open(out / "process.json"))
     assert "global mapping" in printed and summary["mapper"] == "global" and summary["options"]["threads"] == 1
@@ -287,6 +287,36 @@ def test_the_view_graph_calibration_runs_before_global_mapping_when_asked(room, 
     summary = process(folder, tmp_path / "scene", options)
     assert len(calls) == 1 and calls[0][0].endswith("database.db") and calls[0][1] == 3
     assert summary["registered"] >= 0.95 * VIEWS and summary["options"]["calibrate_view_graph"] is True
+
+
+def test_a_smaller_first_pair_angle_reaches_the_incremental_mapper_and_keeps_the_true_poses(
+    room, tmp_path, monkeypatch
+):
+    """``--init-min-tri-angle 8`` (which kept bonsai whole where COLMAP's 16 broke it) is what the
+    incremental mapper gets, is recorded, and still gives the room's true poses; values outside
+    (0, 90) degrees, and the option with the global mapper, are refused before any work."""
+    import pycolmap
+
+    folder, _, poses = room
+    angles = []
+    real = pycolmap.incremental_mapping
+
+    def spy(database, images, out, pipeline, **kwargs):
+        angles.append(pipeline.mapper.init_min_tri_angle)
+        return real(database, images, out, pipeline, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
+    summary = process(folder, tmp_path / "scene", ProcessOptions(progress=False, threads=1, init_min_tri_angle=8.0))
+    assert angles == [8.0] and summary["options"]["init_min_tri_angle"] == 8.0
+    rotation_error, centre_error, _ = pose_errors(
+        tmp_path / "scene", {f"view_{i:02d}.png": p for i, p in enumerate(poses)}
+    )
+    assert rotation_error < 0.5 and centre_error < 0.01, (rotation_error, centre_error)
+    for bad in (0.0, -3.0, 90.0):
+        with pytest.raises(OptionError, match=r"--init-min-tri-angle must be in \(0, 90\) degrees"):
+            ProcessOptions(init_min_tri_angle=bad)
+    with pytest.raises(OptionError, match="--init-min-tri-angle is read by --mapper incremental only"):
+        ProcessOptions(init_min_tri_angle=8.0, mapper="global")
 
 
 def test_the_path_check_finds_a_seam_and_leaves_a_collection_alone():

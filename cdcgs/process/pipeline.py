@@ -54,6 +54,10 @@ class ProcessOptions:
     per_image_camera: bool = False  # one camera per image instead of one shared camera
     mapper: str = "incremental"
     calibrate_view_graph: bool = False  # global mapper: focal lengths from the view graph first
+    # Incremental mapper: the smallest triangulation angle of its first pair, in degrees (COLMAP's
+    # 16). On bonsai, 16 made it start from a wide pair with many wrong matches, and the model
+    # grew in pieces; 4 to 12 gave whole models (docs/process.md).
+    init_min_tri_angle: float = 16.0
     max_image_size: int = 3200  # SIFT works on images at most this large (longer side)
     max_features: int = 8192
     device: str = "auto"  # auto, cpu, cuda (features and matching)
@@ -75,6 +79,10 @@ class ProcessOptions:
             (self.device in ("auto", "cpu", "cuda"), f"--device must be auto, cpu or cuda, got {self.device!r}"),
             (self.threads >= 0, f"--threads must be 0 (all cores) or more, got {self.threads}"),
             (self.frames >= 3, f"--frames must be at least 3, got {self.frames}"),
+            (
+                0.0 < self.init_min_tri_angle < 90.0,
+                f"--init-min-tri-angle must be in (0, 90) degrees, got {self.init_min_tri_angle}",
+            ),
             (self.overlap >= 1, f"--overlap must be at least 1, got {self.overlap}"),
             (0.0 <= self.min_registered <= 1.0, f"--min-registered must be in [0, 1], got {self.min_registered}"),
             (self.max_image_size >= 100, f"--max-image-size must be at least 100, got {self.max_image_size}"),
@@ -88,6 +96,8 @@ class ProcessOptions:
             raise OptionError("--matcher vocabtree needs --vocab-tree FILE (a COLMAP vocabulary tree)")
         if self.calibrate_view_graph and self.mapper != "global":
             raise OptionError("--calibrate-view-graph calibrates for --mapper global only")
+        if self.init_min_tri_angle != 16.0 and self.mapper != "incremental":
+            raise OptionError("--init-min-tri-angle is read by --mapper incremental only")
         if self.vocab_tree and self.matcher != "vocabtree":
             raise OptionError("--vocab-tree is read by --matcher vocabtree only")
 
@@ -429,6 +439,7 @@ def _map(pycolmap, database: str, image_dir: str, sparse_all: str, options: Proc
         return pycolmap.global_mapping(database, image_dir, sparse_all, pipeline)
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.random_seed = options.seed
+    pipeline.mapper.init_min_tri_angle = options.init_min_tri_angle
     pipeline.num_threads = _threads(options)
     bar = tqdm(total=count, desc="registered", unit="img", disable=not options.progress, leave=False)
     try:
