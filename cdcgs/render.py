@@ -131,9 +131,7 @@ class RasterizeInfo:
         stream = self._pending_stream
         with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
             values = self.pending.tolist()  # on the render's stream, after its work, whatever is current now
-        for name, bad in zip(self._pending_names, values):
-            if bad:
-                raise NonFiniteError(name)
+        _raise_nonfinite(self._pending_names, values)
         overflowed, count = values[-2:]
         if overflowed:
             raise CapacityError(count, self.num_intersections)
@@ -280,12 +278,17 @@ def _count_reader(nonfinite: torch.Tensor, names):
 
     def read_count(offsets: wp.array) -> int:
         values = torch.cat([nonfinite, _torch(offsets)[-1:]]).tolist()
-        for name, bad in zip(names, values[:-1]):
-            if bad:
-                raise NonFiniteError(name)
+        _raise_nonfinite(names, values)
         return values[-1]
 
     return read_count
+
+
+def _raise_nonfinite(names, flags) -> None:
+    """NonFiniteError for the first of ``names`` whose flag (read from the device) is set."""
+    for name, bad in zip(names, flags):
+        if bad:
+            raise NonFiniteError(name)
 
 
 class _Project(torch.autograd.Function):
