@@ -239,7 +239,13 @@ def cmd_eval(args) -> int:
             raise OptionError(f"evaluating the PLY {args.path} needs its scene: --data DIR (and --images or --factor)")
         model = GaussianModel.from_ply(read_ply(args.path), device=device)
         scene = load_scene(
-            args.data, images=args.images, factor=args.factor, test_every=args.test_every, device=device, progress=False
+            args.data,
+            images=args.images,
+            factor=args.factor,
+            test_every=args.test_every,
+            test_views=args.test_views,
+            device=device,
+            progress=False,
         )
         out = args.out or os.path.join(
             os.path.dirname(os.path.abspath(args.path)), f"eval_{os.path.splitext(os.path.basename(args.path))[0]}"
@@ -250,9 +256,11 @@ def cmd_eval(args) -> int:
             {"model": os.path.abspath(args.path), "scene": os.path.abspath(args.data)},
         )
     else:
-        for name in ("data", "images", "factor", "out", "background"):
+        for name in ("data", "images", "factor", "test_views", "out", "background"):
             if getattr(args, name) is not None:
-                raise OptionError(f"--{name} is for evaluating a PLY; a run folder names its own scene and outputs")
+                raise OptionError(
+                    f"--{name.replace('_', '-')} is for evaluating a PLY; a run folder names its own scene and outputs"
+                )
         run, scene = _load_run(args.path, args.device)
         model, out, background, antialiased = run.model, args.path, _background(run), run.config.antialiased
         existing = {}
@@ -647,6 +655,12 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--factor", type=int, metavar="INT", default=None, help="downsampling factor (default: 1)")
     group.add_argument(
         "--test-every", type=int, metavar="INT", default=8, help="every n-th image by name is a test view (default: 8)"
+    )
+    group.add_argument(
+        "--test-views",
+        metavar="FILE",
+        default=None,
+        help="the test views are the images named in FILE, one per line (a run's test_views.txt) (default: --test-every)",
     )
     group.add_argument(
         "--background", choices=("black", "white"), default=None, help="background colour (default: black)"

@@ -116,7 +116,9 @@ def test_a_second_signal_during_the_save_corrupts_nothing(tiny_scene, tmp_path, 
     assert not stop.value.clean
     assert "stopped at once by SIGTERM: nothing more written" in capsys.readouterr().out
     assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == 30, "the previous checkpoint, whole"
-    assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt", "config.json"], "no temporary file, no half PLY"
+    assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt", "config.json", "test_views.txt"], (
+        "no temporary file, no half PLY"
+    )
     assert resume(tiny_scene, tmp_path) == straight
 
 
@@ -205,7 +207,7 @@ def test_an_exploding_loss_stops_the_run_and_names_the_learning_rates(tiny_scene
     with pytest.raises(TrainingDiverged, match=r"the loss exploded \(running mean .* at iteration \d+, against") as err:
         trainer.run()
     assert "sh_dc 1e+03" in str(err.value) and "No checkpoint had been written yet" in str(err.value)
-    assert sorted(os.listdir(tmp_path)) == ["config.json"]
+    assert sorted(os.listdir(tmp_path)) == ["config.json", "test_views.txt"]
 
 
 def test_non_finite_parameters_are_named(tiny_scene, tmp_path, monkeypatch):

@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 from scenes import distorted_line_image, line_residual, project, write_colmap_scene
 
-from cdcgs.errors import InputError
+from cdcgs.errors import InputError, OptionError
 from cdcgs.io import load_scene
 
 BONSAI = os.environ.get("CDCGS_BONSAI", os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "bonsai"))
@@ -46,6 +46,54 @@ def test_split_every_eighth_by_name(tmp_path):
     assert len(scene.train) == 17 and len(scene.test) == 3
     scene = load_scene(tmp_path, test_every=0, load_images_now=False)
     assert len(scene.train) == 17 and scene.test == []
+
+
+def test_named_test_views_stay_the_same_when_a_view_is_missing(tmp_path, caplog):
+    # Two models of one capture, one lacking a photo (it did not register): every 8th by name
+    # shifts past the gap, the named views do not.
+    write_colmap_scene(tmp_path, n_images=17)
+    full = load_scene(tmp_path, load_images_now=False)
+    listed = tmp_path / "test_views.txt"
+    listed.write_text("# held out\n" + "\n".join(v.name for v in full.test) + "\n\n")
+    os.remove(tmp_path / "images" / "img_003.png")
+    with caplog.at_level(logging.WARNING):
+        gap = load_scene(tmp_path, load_images_now=False, skip_missing=True)
+    assert [v.name for v in gap.test] == ["img_000.png", "img_009.png"]
+    named = load_scene(tmp_path, load_images_now=False, skip_missing=True, test_views=str(listed), test_every=5)
+    assert [v.name for v in named.test] == ["img_000.png", "img_008.png", "img_016.png"]
+    assert len(named.train) == 13 and not {v.name for v in named.train} & {v.name for v in named.test}
+    as_list = load_scene(tmp_path, load_images_now=False, skip_missing=True, test_views=["img_008.png"])
+    assert [v.name for v in as_list.test] == ["img_008.png"] and len(as_list.train) == 15
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (None, "no such file of view names"),
+        ("# nothing\n\n", "names no view"),
+        ("\ufeffimg_001.png\r\nimg_003.png\r\nIMG_001.png\r\n", "2 of the 3 test view names are not views of"),
+        ("\ufeffimg_001.png\nimg_002.png\n", None),
+    ],
+)
+def test_bad_test_views_file_is_named(tmp_path, text, message):
+    write_colmap_scene(tmp_path, n_images=9)
+    os.remove(tmp_path / "images" / "img_003.png")
+    listed = tmp_path / "names.txt"
+    if text is not None:
+        listed.write_text(text)
+    if message is None:  # a byte-order mark and CRLF endings are not part of the names
+        scene = load_scene(tmp_path, load_images_now=False, skip_missing=True, test_views=listed)
+        assert [v.name for v in scene.test] == ["img_001.png", "img_002.png"]
+        return
+    with pytest.raises(InputError, match=re.escape(message)) as info:
+        load_scene(tmp_path, load_images_now=False, skip_missing=True, test_views=listed)
+    assert "names.txt" in str(info.value)
+    if "not views" in message:
+        assert str(info.value).endswith("IMG_001.png, img_003.png")
+    good = tmp_path / "good.txt"
+    good.write_text("img_001.png\n")
+    with pytest.raises(OptionError, match=r"^test_every must be a non-negative int"):  # not the file's fault
+        load_scene(tmp_path, load_images_now=False, skip_missing=True, test_views=good, test_every=-1)
 
 
 def test_extent_is_3dgs_radius(tmp_path):

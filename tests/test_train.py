@@ -50,6 +50,7 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
         "metrics.json",
         "point_cloud.ply",
         "test_renders",
+        "test_views.txt",
     ):
         assert expected in names
     metrics = json.load(open(out / "metrics.json"))
@@ -251,6 +252,17 @@ def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
     for key in ("psnr", "ssim", "lpips_vgg", "lpips_alex"):
         assert from_ply[key] == pytest.approx(from_run[key], rel=1e-5), key
     assert len(os.listdir(ply_eval / "test_renders")) == from_run["views"]
+    # The run lists its test views; naming them holds out the same views whatever --test-every says.
+    names = (out / "test_views.txt").read_text().split()
+    assert names == [v["name"] for v in json.load(open(out / "metrics.json"))["per_view"]] and len(names) == 2
+    named = tmp_path / "named_eval"
+    args = ["eval", str(out / "point_cloud.ply"), "--data", str(tiny_scene), "--device", device, "--out", str(named)]
+    assert cli_main([*args, "--test-every", "5", "--test-views", str(out / "test_views.txt")]) == 0
+    named_metrics = json.load(open(named / "metrics.json"))
+    assert [v["name"] for v in named_metrics["per_view"]] == names
+    assert named_metrics["test"]["psnr"] == pytest.approx(from_run["psnr"], rel=1e-5)
+    assert cli_main(["eval", str(out), "--test-views", str(out / "test_views.txt"), "--device", device]) == 2
+    assert "--test-views is for evaluating a PLY" in capsys.readouterr().err
     assert cli_main(["eval", str(out / "point_cloud.ply"), "--device", device]) == 2
     assert "needs its scene: --data DIR" in capsys.readouterr().err
     assert cli_main(["eval", str(out), "--data", str(tiny_scene), "--device", device]) == 2
@@ -285,6 +297,29 @@ def test_cli_train_eval_render_export(tiny_scene, tmp_path, capsys, device):
         assert (tmp_path / "orbit.mp4").stat().st_size > 1000
     assert cli_main(["export", str(out), str(tmp_path / "model.ply")]) == 0
     assert read_ply(tmp_path / "model.ply").means.shape[0] == read_ply(out / "point_cloud.ply").means.shape[0]
+
+
+def test_named_test_views_are_held_out_kept_on_resume_and_read_back(tiny_scene, tmp_path, capsys):
+    from cdcgs.io import load_scene
+    from cdcgs.train.outputs import load_run
+
+    names = [v.name for v in load_scene(tiny_scene, test_every=0, load_images_now=False, progress=False).train]
+    chosen = [names[6], names[1], names[5]]  # not every 8th: index 0 and 8 would be
+    listed = tmp_path / "names.txt"
+    listed.write_text("\n".join(chosen) + "\n")
+    out = tmp_path / "run"
+    assert cli_main(train_argv(tiny_scene, out, 6, "--test-views", str(listed))) == 0
+    assert (out / "test_views.txt").read_text().split() == sorted(chosen)
+    assert [v["name"] for v in json.load(open(out / "metrics.json"))["per_view"]] == sorted(chosen)
+    # Resuming with another split (here every 8th, the default) would train on held-out views.
+    assert cli_main(train_argv(tiny_scene, out, 9, "--resume")) == 2
+    err = capsys.readouterr().err
+    assert "held out 3 test view(s)" in err and str(out / "test_views.txt") in err, err
+    assert cli_main(train_argv(tiny_scene, out, 9, "--resume", "--test-views", str(out / "test_views.txt"))) == 0
+    assert json.load(open(out / "metrics.json"))["iterations"] == 9
+    # A finished run holds out the names it recorded, wherever the file it was given went.
+    listed.unlink()
+    assert [v.name for v in load_run(out).load_scene(load_images=False).test] == sorted(chosen)
 
 
 @pytest.mark.parametrize(

@@ -230,7 +230,7 @@ def train(args, api: SimpleNamespace, device: torch.device) -> int:
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     random.seed(args.seed)
-    scene = load_scene(args.data, images=args.images, device=device, progress=args.progress)
+    scene = load_scene(args.data, images=args.images, test_views=args.test_views, device=device, progress=args.progress)
     scene_scale = scene_extent(scene.views)  # all cameras, as gsplat's Parser
     settings, mcmc = SETTINGS[args.strategy], args.strategy == "mcmc"
     model = GaussianModel.from_points(
@@ -369,6 +369,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     add("--out", required=True, help="output folder: metrics.json and point_cloud.ply")
     add("--iters", type=int, default=30_000, help="training iterations")
     add("--images", default=None, help="COLMAP image folder, as cdcgs train --images (default: images/)")
+    add(
+        "--test-views",
+        metavar="FILE",
+        default=None,
+        help="hold out the images named in FILE, as cdcgs train --test-views (default: every 8th by name)",
+    )
     add("--seed", type=int, default=0, help="seed of every random draw, as cdcgs train --seed")
     add("--adam", choices=("fused", "default"), default="fused", help="fused as ours, or torch's default as gsplat's")
     add(

@@ -10,7 +10,7 @@ import torch
 from ..errors import InputError, OptionError
 from .colmap import read_colmap
 from .transforms import read_transforms
-from .views import View, load_images, scene_extent, split_views
+from .views import View, load_images, read_view_names, scene_extent, split_views
 
 __all__ = ["Scene", "load_scene"]
 
@@ -47,6 +47,7 @@ def load_scene(
     factor: int | None = None,
     test_every: int = 8,
     train_on_all: bool = False,
+    test_views=None,
     device="cpu",
     load_images_now: bool = True,
     num_threads: int | None = None,
@@ -62,6 +63,8 @@ def load_scene(
         factor: downsampling factor (1, 2, 4, 8): COLMAP folder ``images_{factor}``, or resize on
             load when that folder is missing; transforms.json images are resized by it.
         test_every: hold out every n-th view by sorted name (0: none). train_on_all: train on all.
+        test_views: hold out these views instead: a file of image names, one per line (a run's
+            test_views.txt), or a list of names; every one must be a view of the scene.
         device: where the uint8 images live. load_images_now: read the pictures now.
         skip_missing: skip frames whose image file is missing (reported) instead of refusing.
         random_init: a COLMAP model without 3-D points starts from random points (announced)
@@ -90,7 +93,17 @@ def load_scene(
         raise InputError(path, "not a scene: expected a folder with sparse/0 (COLMAP) or a transforms.json")
     if not views:
         raise InputError(path, "the scene has no views")
-    train, test = split_views(views, test_every, train_on_all)
+    from_file = test_views is not None and not isinstance(test_views, (list, tuple, set, frozenset))
+    test_names = read_view_names(test_views) if from_file else test_views
+    if test_names is not None:
+        missing = sorted(set(test_names) - {v.name for v in views})
+        if missing:
+            shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+            where = os.fspath(test_views) if from_file else path
+            raise InputError(
+                where, f"{len(missing)} of the {len(set(test_names))} test view names are not views of {path}: {shown}"
+            )
+    train, test = split_views(views, test_every, train_on_all, test_names)
     if not train:
         raise InputError(path, f"no training views: {len(views)} view(s) and every one is held out")
     scene = Scene(

@@ -28,6 +28,7 @@ __all__ = [
     "check_intrinsics",
     "load_images",
     "random_points_in_frustums",
+    "read_view_names",
     "report_missing",
     "scene_extent",
     "split_views",
@@ -97,18 +98,59 @@ def check_intrinsics(
             )
 
 
-def split_views(views: list[View], test_every: int = 8, train_on_all: bool = False) -> tuple[list[View], list[View]]:
+def split_views(
+    views: list[View], test_every: int = 8, train_on_all: bool = False, test_names=None
+) -> tuple[list[View], list[View]]:
     """Sort by image name; every ``test_every``-th (index % test_every == 0) is held out for testing.
 
     With ``train_on_all`` the training set holds every view (the test views are still listed, for
-    reporting on them). ``test_every`` 0 holds out nothing.
+    reporting on them). ``test_every`` 0 holds out nothing. ``test_names`` (image names) holds out
+    exactly those views instead of every n-th: the way to test two models of the same photos on the
+    same photos when one of them lacks a view (every n-th by name would shift past the gap).
+
+    Raises:
+        OptionError: a bad ``test_every``, or a name in ``test_names`` that is not a view of the scene.
     """
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
         raise OptionError(f"test_every must be a non-negative int, got {test_every!r}")
     views = sorted(views, key=lambda v: v.name)
-    test = [v for i, v in enumerate(views) if test_every and i % test_every == 0]
-    train = views if train_on_all or not test_every else [v for i, v in enumerate(views) if i % test_every != 0]
+    if test_names is None:
+        held = [bool(test_every) and i % test_every == 0 for i in range(len(views))]
+    else:
+        if isinstance(test_names, str):
+            raise OptionError("test_names must be a list of image names, not one string")
+        wanted = set(test_names)
+        missing = sorted(wanted - {v.name for v in views})
+        if missing:
+            raise OptionError(f"test_names: {len(missing)} name(s) are not views: {', '.join(missing[:8])}")
+        held = [v.name in wanted for v in views]
+    test = [v for v, h in zip(views, held) if h]
+    train = views if train_on_all else [v for v, h in zip(views, held) if not h]
     return train, test
+
+
+def read_view_names(path) -> list[str]:
+    """Image names, one per line, from a text file: a run's ``test_views.txt`` or a list written by
+    hand. Blank lines and lines that start with ``#`` are skipped; a name keeps its inner spaces.
+    An empty list (no name) is refused: ``--test-every 0`` holds out nothing.
+
+    Raises:
+        InputError: the file is missing, unreadable, not text, or names no image.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8-sig") as f:  # -sig: a byte-order mark is not part of the first name
+            lines = f.read().splitlines()
+    except FileNotFoundError:
+        raise InputError(path, "no such file of view names") from None
+    except IsADirectoryError:
+        raise InputError(path, "a folder, not a file of view names (one image name per line)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(path, f"unreadable as a text file of view names ({e})") from None
+    names = [n for n in (line.strip() for line in lines) if n and not n.startswith("#")]
+    if not names:
+        raise InputError(path, "names no view (expected one image name per line)")
+    return list(dict.fromkeys(names))
 
 
 def scene_extent(views: list[View]) -> float:

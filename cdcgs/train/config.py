@@ -92,10 +92,28 @@ class DataConfig:
     )
     test_every: int = option(8, "hold out every n-th image by sorted name for testing (0: none)")
     train_on_all: bool = option(False, "train on every image (the held-out ones are still evaluated)")
+    test_views: str | None = option(
+        None,
+        "hold out the images named in FILE (one per line, e.g. another run's test_views.txt) instead of every n-th: "
+        "the same test photos for two models of one capture",
+        metavar="FILE",
+    )
     skip_missing: bool = option(False, "skip views whose image file is missing instead of refusing the scene")
     random_init: bool = option(
         False, "a COLMAP model without 3D points starts from random points in the cameras' common view (else refused)"
     )
+
+    def scene_options(self) -> dict:
+        """The keyword arguments of :func:`cdcgs.io.load_scene` that this configuration sets."""
+        return dict(
+            images=self.images,
+            factor=self.factor,
+            test_every=self.test_every,
+            train_on_all=self.train_on_all,
+            test_views=self.test_views,
+            skip_missing=self.skip_missing,
+            random_init=self.random_init,
+        )
 
 
 @dataclass(kw_only=True)

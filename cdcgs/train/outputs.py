@@ -2,9 +2,9 @@
 how a finished or interrupted run is read back (:func:`load_run`, for eval, render, export and the
 viewer).
 
-Layout of ``OUT``: config.json, checkpoint.pt, point_cloud.ply, metrics.json, history.json,
-curves.png, correlation.png (strategies that log Γ-Ψ correlation), complexity_maps/*.png,
-test_renders/*.png.
+Layout of ``OUT``: config.json, test_views.txt (the held-out image names, for ``--test-views``),
+checkpoint.pt, point_cloud.ply, metrics.json, history.json, curves.png, correlation.png
+(strategies that log Γ-Ψ correlation), complexity_maps/*.png, test_renders/*.png.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ __all__ = [
     "CHECKPOINT",
     "CONFIG",
     "PLY",
+    "TEST_VIEWS",
     "Run",
     "RunLock",
     "correlation_curve",
@@ -34,10 +35,12 @@ __all__ = [
     "save_complexity_maps",
     "view_stem",
     "write_json",
+    "write_view_names",
 ]
 
 CONFIG, CHECKPOINT, PLY = "config.json", "checkpoint.pt", "point_cloud.ply"
 METRICS, HISTORY = "metrics.json", "history.json"
+TEST_VIEWS = "test_views.txt"
 LOCK = ".lock"
 
 
@@ -114,12 +117,21 @@ def view_stem(name: str) -> str:
     return os.path.splitext(name.replace(os.sep, "_"))[0]
 
 
+def write_view_names(path: str, views) -> None:
+    """The views' image names, one per line (what ``--test-views`` reads back), written atomically."""
+    _write_atomically(path, "".join(f"{v.name}\n" for v in views))
+
+
 def write_json(path: str, data, indent: int | None = 2) -> None:
     """Write ``data`` as JSON to ``path`` atomically: an interrupted write leaves the old file."""
+    _write_atomically(path, json.dumps(data, indent=indent))
+
+
+def _write_atomically(path: str, text: str) -> None:
     tmp = f"{path}.tmp-{os.getpid()}"
     try:
-        with open(tmp, "w") as f:
-            json.dump(data, f, indent=indent)
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -141,24 +153,19 @@ class Run:
     notes: list[str] = field(default_factory=list)
 
     def load_scene(self, device="cpu", *, load_images: bool = True, progress: bool = False):
-        """The run's scene, from the path its configuration names.
+        """The run's scene, from the path its configuration names. A run trained with
+        ``--test-views`` holds out the names it recorded (its own test_views.txt): the file it was
+        given may have moved or changed since.
 
         Raises:
             InputError: the scene is no longer where the run found it, or is unreadable.
         """
         d = self.config.data
-        return load_scene(
-            d.data,
-            images=d.images,
-            factor=d.factor,
-            test_every=d.test_every,
-            train_on_all=d.train_on_all,
-            device=device,
-            skip_missing=d.skip_missing,
-            random_init=d.random_init,
-            load_images_now=load_images,
-            progress=progress,
-        )
+        options = d.scene_options()
+        own = os.path.join(self.path, TEST_VIEWS)
+        if d.test_views is not None and os.path.isfile(own):
+            options["test_views"] = own
+        return load_scene(d.data, device=device, load_images_now=load_images, progress=progress, **options)
 
 
 def load_run(path, device="cpu") -> Run:

@@ -254,17 +254,7 @@ class Trainer:
                 "--resolution-schedule dash"
             )
         d = config.data
-        self.scene = load_scene(
-            d.data,
-            images=d.images,
-            factor=d.factor,
-            test_every=d.test_every,
-            train_on_all=d.train_on_all,
-            device=self.device,
-            skip_missing=d.skip_missing,
-            random_init=d.random_init,
-            progress=config.progress,
-        )
+        self.scene = load_scene(d.data, device=self.device, progress=config.progress, **d.scene_options())
         # Each training view's camera, checked and built once (the render would redo it every step).
         self.cameras = [prepare_camera(v.viewmat, v.K, v.width, v.height) for v in self.scene.train]
         # Every random draw of the run comes from these two (torch generators are bound to a
@@ -297,6 +287,14 @@ class Trainer:
             self.train_seconds = 0.0
             self.guard = NumericGuard(self.device)
         else:
+            held_out = resume_state.get("test_views")  # checkpoints before --test-views did not record it
+            if held_out is not None and held_out != [v.name for v in self.scene.test]:
+                raise InputError(
+                    self.checkpoint_path,
+                    f"the checkpoint held out {len(held_out)} test view(s) and this command's split holds out "
+                    f"{len(self.scene.test)} others: resume with the run's own split (--test-every as it was, or "
+                    f"--test-views {os.path.join(self.out, outputs.TEST_VIEWS)})",
+                )
             self.model = GaussianModel.from_state_dict(resume_state["model"], device=self.device)
             self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
             load_optimizer_state(self.optimizer, resume_state["optimizer"])
@@ -433,6 +431,7 @@ class Trainer:
             "strategy_options": self.strategy_options,
             "step": self.step,
             "view_queue": list(self.view_queue),
+            "test_views": [v.name for v in self.scene.test],
             "history": self.history,
             "train_seconds": self.train_seconds,
             "generator": self.generator.get_state(),
@@ -823,9 +822,10 @@ class Trainer:
         try:  # agreed on too: a failed write stops every process with its cause, not by a timeout
             if self.ranks.is_main:
                 outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
+                outputs.write_view_names(os.path.join(self.out, outputs.TEST_VIEWS), self.scene.test)
         except Exception as err:
             error = err
-        self.ranks.all_ok(error, f"writing {outputs.CONFIG}")
+        self.ranks.all_ok(error, f"writing {outputs.CONFIG} and {outputs.TEST_VIEWS}")
         config = self.config
         from tqdm import tqdm
 
