@@ -1,6 +1,7 @@
 """Rasterizer timing on the shared workload, next to gsplat measured in the same process.
 
-    python benchmarks/bench_rasterize.py [--sizes 100000 1000000 3000000] [--out results.json]
+    python benchmarks/bench_rasterize.py [--sizes 100000 1000000 3000000] [--capacity 1.25 2]
+        [--out results.json]
 
 The workload is the scene every peer is measured on: a module with ``make_scene(n, device=...)``,
 given with ``--workload PATH`` (default: ``DEFAULT_WORKLOAD`` below). For each size: forward, and forward+backward with
@@ -8,11 +9,20 @@ loss = image.sum(), median of ``--iters`` timed iterations after ``--warmup`` wa
 CUDA events on the GPU (wall clock on the CPU); peak memory from torch's allocator (which backs
 every buffer cdcgs allocates); tile intersections. gsplat 1.5.3 ``rasterization(packed=False)``
 runs on the same scene when it imports; both renders are compared as a cross-check of conventions.
+
+Each render is also timed pipelined: ``--iters`` forward+backward iterations launched back to
+back with one synchronisation at the end (wall clock / iterations), as a training issues them.
+A counted render (cdcgs, gsplat) waits for its intersection count inside every iteration; with
+``--capacity M`` cdcgs also renders into ceil(M x count) slots without reading anything back
+(``rasterize(capacity=)``: no wait, but the sort's work grows with the slots), so the two
+pipelined columns show what a training step without the count read would gain or lose. Its
+images must equal the counted render's (checked, with ``info.check()`` for overflow).
 """
 
 import argparse
 import importlib.util
 import json
+import math
 import os
 import statistics
 import sys
@@ -55,6 +65,20 @@ def timed(fn, device, warmup, iters):
     return statistics.median(times)
 
 
+def pipelined(fn, device, warmup, iters):
+    """Milliseconds per call of ``iters`` calls issued back to back, one synchronisation at the end."""
+    for _ in range(warmup):
+        fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t0 = time.perf_counter()
+    for _ in range(iters):
+        fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return (time.perf_counter() - t0) * 1e3 / iters
+
+
 def peak_gb(fn, device):
     if device.type != "cuda":
         return float("nan")
@@ -66,13 +90,15 @@ def peak_gb(fn, device):
     return torch.cuda.max_memory_allocated() / 1e9
 
 
-def make_renderers(scene):
+def make_renderers(scene, margins=()):
+    """name -> render(): (image, intersections); cdcgs counted, cdcgs into ceil(margin x count)
+    slots for each margin, and gsplat where it imports."""
     leaves = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "sh")}
     w, h = scene["width"], scene["height"]
     # Checked and built once, as a training holds its views' cameras.
     camera = cdcgs.prepare_camera(scene["viewmat"].cpu(), scene["K"].cpu(), w, h)
 
-    def ours():
+    def ours(capacity=None):
         image, _, info = cdcgs.rasterize(
             leaves["means"],
             leaves["quats"],
@@ -81,10 +107,24 @@ def make_renderers(scene):
             leaves["sh"],
             camera=camera,
             sh_degree=scene["sh_degree"],
+            capacity=capacity,
         )
+        return image, info
+
+    def counted():
+        image, info = ours()
         return image, info.num_intersections
 
-    renderers = {"cdcgs": ours}
+    renderers = {"cdcgs": counted}
+    count = counted()[1] if margins else 0
+    for margin in margins:
+        capacity = max(1, math.ceil(margin * count))
+
+        def within(capacity=capacity):
+            return ours(capacity)[0], count
+
+        within.check = lambda capacity=capacity: ours(capacity)[1].check()  # reads the device's flags
+        renderers[f"cdcgs capacity {margin:g}x"] = within
     try:
         from gsplat import rasterization
     except ImportError as err:
@@ -111,25 +151,39 @@ def make_renderers(scene):
     return leaves, renderers
 
 
-def main():
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000, 3_000_000], help="Gaussian counts")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="torch device")
     parser.add_argument("--workload", default=DEFAULT_WORKLOAD, help="path of the shared bench/workload.py")
     parser.add_argument("--warmup", type=int, default=3, help="untimed iterations before timing")
     parser.add_argument("--iters", type=int, default=30, help="timed iterations (median reported)")
+    parser.add_argument(
+        "--capacity",
+        type=float,
+        nargs="*",
+        default=[],
+        metavar="M",
+        help="also time cdcgs into ceil(M x count) slots without the count read (M >= 1), e.g. 1.25 2",
+    )
     parser.add_argument("--out", default=None, help="write the results as JSON here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if any(not math.isfinite(m) or m < 1.0 for m in args.capacity):
+        parser.error(f"--capacity: margins must be at least 1 (room for every pair), got {args.capacity}")
     device = torch.device(args.device)
     workload = load_workload(args.workload)
     rows = []
     for n in args.sizes:
         scene = workload.make_scene(n, device=args.device)
-        leaves, renderers = make_renderers(scene)
+        leaves, renderers = make_renderers(scene, args.capacity)
         images = {}
         for name, render in renderers.items():
             image, intersections = render()
             images[name] = image.detach()
+            if hasattr(render, "check"):  # room for every pair, and the counted render's image
+                render.check()
+                if not torch.equal(images[name], images["cdcgs"]):
+                    sys.exit(f"n={n}: {name} renders another image than the counted render")
 
             def forward(render=render):
                 with torch.no_grad():
@@ -147,6 +201,7 @@ def main():
                 "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                 "forward_ms": timed(forward, device, args.warmup, args.iters),
                 "forward_backward_ms": timed(forward_backward, device, args.warmup, args.iters),
+                "pipelined_ms": pipelined(forward_backward, device, args.warmup, args.iters),
                 "intersections": intersections,
                 "peak_gb": peak_gb(forward_backward, device),
             }
@@ -163,8 +218,11 @@ def main():
             torch.cuda.empty_cache()
 
     print()
-    print("| N | renderer | forward ms | fwd+bwd ms | intersections | peak GB | fwd ratio | fwd+bwd ratio |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| N | renderer | forward ms | fwd+bwd ms | fwd+bwd pipelined ms | intersections | peak GB "
+        "| fwd ratio | fwd+bwd ratio |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     by_key = {(r["renderer"], r["n"]): r for r in rows if "forward_ms" in r}
     for r in rows:
         if "forward_ms" not in r:
@@ -174,11 +232,13 @@ def main():
         ratio_fb = f"{r['forward_backward_ms'] / peer['forward_backward_ms']:.2f}" if peer else "-"
         print(
             f"| {r['n']:,} | {r['renderer']} | {r['forward_ms']:.2f} | {r['forward_backward_ms']:.2f} | "
+            f"{r['pipelined_ms']:.2f} | "
             f"{r['intersections'] / 1e6:.2f}M | {r['peak_gb']:.2f} | {ratio_f} | {ratio_fb} |"
         )
     if args.out:
         with open(args.out, "w") as f:
             json.dump(rows, f, indent=2)
+    return rows
 
 
 if __name__ == "__main__":

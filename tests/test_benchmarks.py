@@ -592,3 +592,19 @@ def test_eval_memory_measures_every_setting_and_its_own_process_gets_its_variabl
     assert all(-1 <= score <= 1 for score in by_part["ssim"])
     printed = capsys.readouterr().out
     assert "max|d|" in printed and "CUDNN_CONV_WSCAP_DBG=64" in printed
+
+
+def test_bench_rasterize_times_the_render_without_its_count_read(tmp_path, capsys):
+    import bench_rasterize
+
+    workload = tmp_path / "workload.py"
+    workload.write_text(WORKLOAD)
+    argv = ["--sizes", "60", "--device", "cpu", "--warmup", "1", "--iters", "2", "--workload", str(workload)]
+    rows = bench_rasterize.main([*argv, "--capacity", "1", "2.5", "--out", str(tmp_path / "r.json")])
+    names = [r["renderer"] for r in rows if "forward_ms" in r]
+    assert names[:3] == ["cdcgs", "cdcgs capacity 1x", "cdcgs capacity 2.5x"], names
+    assert all(r["pipelined_ms"] > 0 and r["intersections"] == rows[0]["intersections"] > 0 for r in rows[:3])
+    assert "| fwd+bwd pipelined ms |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # a margin below 1 has no room for every pair
+        bench_rasterize.main([*argv, "--capacity", "0.5"])
+    assert "margins must be at least 1" in capsys.readouterr().err
