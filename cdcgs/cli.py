@@ -618,18 +618,26 @@ def cmd_process(args) -> int:
         print(f"  not registered: {entry['name']}: {entry['reason']}")
     for other in summary["other_models"]:
         print(f"  another model of {other['images']} images and {other['points']} points was left out")
+    remedy = "" if summary["mapper"] == "global" else f" ({_incremental_remedies(summary['options'])}; docs/process.md)"
     for jump in summary["path"]["jumps"]:
         print(
             f"  warning: the camera path jumps from {jump['from']} to {jump['to']}, {jump['ratio']}x its median "
-            "step between consecutive images: the model may be in pieces"
-            + (
-                ""
-                if summary["mapper"] == "global"
-                else " (a smaller --init-min-tri-angle, e.g. 8, or --mapper global may join them; docs/process.md)"
-            )
+            f"step between consecutive images: the model may be in pieces{remedy}"
         )
     print(f"scene in {os.path.abspath(args.out)} (cdcgs train --data {args.out})")
     return 0
+
+
+def _incremental_remedies(options: dict) -> str:
+    """What may keep a broken incremental model whole, given the options it was made with: a
+    smaller first-pair angle, one focal length instead of two (their drift broke bonsai at 8°),
+    the global mapper."""
+    remedies = []
+    if options["init_min_tri_angle"] > 8:
+        remedies.append("a smaller --init-min-tri-angle, e.g. 8")
+    if options["camera_model"] in ("PINHOLE", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"):
+        remedies.append("a camera with one focal length (--camera-model SIMPLE_RADIAL)")
+    return ", ".join([*remedies, "--mapper global"]) + " may join them"
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -87,6 +87,11 @@ def test_photos_give_the_true_poses(room, tmp_path):
     assert summary["registered"] >= 0.95 * VIEWS and summary["matcher"] == "exhaustive"
     assert json.load(open(out / "process.json"))["options"]["threads"] == 1
     assert summary["mean_reprojection_error"] < 1.0 and summary["points"] > 500
+    # The default camera has one focal length (two drifted apart and broke bonsai: docs/process.md).
+    import pycolmap
+
+    (camera,) = pycolmap.Reconstruction(str(out / "distorted" / "sparse" / "0")).cameras.values()
+    assert camera.model.name == "SIMPLE_RADIAL" and abs(camera.params[0] - 256.0) < 2.0, camera
     rotation_error, centre_error, registered = pose_errors(out, {f"view_{i:02d}.png": p for i, p in enumerate(poses)})
     assert registered == summary["registered"]
     assert rotation_error < 0.5 and centre_error < 0.01, (rotation_error, centre_error)
@@ -376,3 +381,19 @@ def test_each_stage_reports_its_time_as_it_ends_and_a_failed_one_none():
     with quiet.stage("images"):
         pass
     assert list(quiet.seconds) == ["images"]
+
+
+@pytest.mark.parametrize(
+    "camera, angle, expected",
+    [
+        ("OPENCV", 16.0, "a smaller --init-min-tri-angle, e.g. 8, a camera with one focal length"),
+        ("OPENCV", 8.0, "a camera with one focal length (--camera-model SIMPLE_RADIAL), --mapper global"),
+        ("SIMPLE_RADIAL", 16.0, "a smaller --init-min-tri-angle, e.g. 8, --mapper global"),
+        ("SIMPLE_RADIAL", 4.0, "(--mapper global may join them"),
+    ],
+)
+def test_a_jump_after_incremental_mapping_suggests_only_what_the_run_did_not_use(camera, angle, expected):
+    from cdcgs.cli import _incremental_remedies
+
+    remedies = _incremental_remedies({"camera_model": camera, "init_min_tri_angle": angle})
+    assert expected in f"({remedies}" and remedies.endswith("--mapper global may join them")

@@ -5,7 +5,9 @@ Stages, each timed and shown with a progress bar:
 1. images: photos copied upright (EXIF orientation), or the sharpest frame of each window of a
    video, into ``SCENE/input``;
 2. features: SIFT (on the GPU where pycolmap was built with CUDA), one shared camera by default
-   (``OPENCV``, as INRIA's convert.py), into ``SCENE/distorted/database.db``;
+   (``SIMPLE_RADIAL``, COLMAP's default: one focal length, which the incremental mapper's first
+   bundle adjustments cannot pull apart as they did OPENCV's on bonsai), into
+   ``SCENE/distorted/database.db``;
 3. matching: exhaustive for photo sets up to ``exhaustive_limit``, sequential for video frames,
    spatial for large sets with GPS in their EXIF, vocabulary tree with a tree file; or as asked;
 4. mapping: incremental (or global) into ``SCENE/distorted/sparse/<k>``; the model with the
@@ -35,7 +37,7 @@ __all__ = ["MAPPERS", "MATCHERS", "ProcessOptions", "process"]
 
 MATCHERS = ("auto", "exhaustive", "sequential", "spatial", "vocabtree")
 MAPPERS = ("incremental", "global")
-CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE", "FULL_OPENCV")
+CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL", "OPENCV_FISHEYE", "FULL_OPENCV")
 # What process writes into SCENE (and replaces with overwrite).
 OUTPUTS = ("input", "distorted", "images", "images_2", "images_4", "images_8", "sparse", "stereo", "process.json")
 MIN_FEATURES = 100  # an image with fewer SIFT features is reported as featureless
@@ -50,7 +52,10 @@ class ProcessOptions:
     vocab_tree: str | None = None  # a COLMAP vocabulary tree file, for matcher vocabtree
     exhaustive_limit: int = 300  # auto: exhaustive matching up to this many photos
     overlap: int = 20  # sequential matching: each frame against the next this many (and quadratic steps)
-    camera_model: str = "OPENCV"
+    # One focal length and one radial term (COLMAP's default). OPENCV (INRIA's convert.py) has two
+    # focal lengths: on bonsai they drifted apart from one of two clean first pairs and the model
+    # broke (docs/process.md); SIMPLE_RADIAL kept it whole from both.
+    camera_model: str = "SIMPLE_RADIAL"
     per_image_camera: bool = False  # one camera per image instead of one shared camera
     mapper: str = "incremental"
     calibrate_view_graph: bool = False  # global mapper: focal lengths from the view graph first
