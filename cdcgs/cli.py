@@ -487,7 +487,7 @@ def correlation_table(histories: dict) -> str:
 
 
 def _add_process_parser(sub):
-    from .process.pipeline import CAMERA_MODELS, MAPPERS, MATCHERS, ProcessOptions
+    from .process.pipeline import CAMERA_MODELS, INIT_MIN_TRI_ANGLE, MAPPERS, MATCHERS, ProcessOptions
 
     d = ProcessOptions()
     p = sub.add_parser(
@@ -536,10 +536,10 @@ def _add_process_parser(sub):
     p.add_argument(
         "--init-min-tri-angle",
         type=float,
-        default=d.init_min_tri_angle,
+        default=None,
         metavar="DEGREES",
-        help=f"with --mapper incremental: the smallest triangulation angle of the first image pair "
-        f"(default: {d.init_min_tri_angle:g}, COLMAP's; 4 to 12 kept bonsai whole where 16 broke it)",
+        help="with --mapper incremental: the smallest triangulation angle of the first image pair "
+        f"(default: {INIT_MIN_TRI_ANGLE:g}; COLMAP's 16 broke bonsai)",
     )
     p.add_argument(
         "--calibrate-view-graph",

@@ -297,9 +297,9 @@ def test_the_view_graph_calibration_runs_before_global_mapping_when_asked(room, 
 def test_a_smaller_first_pair_angle_reaches_the_incremental_mapper_and_keeps_the_true_poses(
     room, tmp_path, monkeypatch
 ):
-    """``--init-min-tri-angle 8`` (which kept bonsai whole where COLMAP's 16 broke it) is what the
-    incremental mapper gets, is recorded, and still gives the room's true poses; values outside
-    (0, 90) degrees, and the option with the global mapper, are refused before any work."""
+    """8 degrees, the default (COLMAP's 16 broke bonsai), is what the incremental mapper gets, is
+    recorded, and still gives the room's true poses; values outside (0, 90) degrees, and the
+    option with the global mapper (which leaves it unset), are refused before any work."""
     import pycolmap
 
     folder, _, poses = room
@@ -311,7 +311,7 @@ def test_a_smaller_first_pair_angle_reaches_the_incremental_mapper_and_keeps_the
         return real(database, images, out, pipeline, **kwargs)
 
     monkeypatch.setattr(pycolmap, "incremental_mapping", spy)
-    summary = process(folder, tmp_path / "scene", ProcessOptions(progress=False, threads=1, init_min_tri_angle=8.0))
+    summary = process(folder, tmp_path / "scene", ProcessOptions(progress=False, threads=1))
     assert angles == [8.0] and summary["options"]["init_min_tri_angle"] == 8.0
     rotation_error, centre_error, _ = pose_errors(
         tmp_path / "scene", {f"view_{i:02d}.png": p for i, p in enumerate(poses)}
@@ -322,6 +322,8 @@ def test_a_smaller_first_pair_angle_reaches_the_incremental_mapper_and_keeps_the
             ProcessOptions(init_min_tri_angle=bad)
     with pytest.raises(OptionError, match="--init-min-tri-angle is read by --mapper incremental only"):
         ProcessOptions(init_min_tri_angle=8.0, mapper="global")
+    assert ProcessOptions(mapper="global").init_min_tri_angle is None
+    assert ProcessOptions(init_min_tri_angle=16.0).init_min_tri_angle == 16.0  # COLMAP's, on request
 
 
 def test_the_path_check_finds_a_seam_and_leaves_a_collection_alone():

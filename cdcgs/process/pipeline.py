@@ -33,10 +33,11 @@ from ..errors import InputError, OptionError
 from .checks import path_jumps
 from .inputs import VIDEO_EXTENSIONS, copy_photos, list_photos, video_frames
 
-__all__ = ["MAPPERS", "MATCHERS", "ProcessOptions", "process"]
+__all__ = ["CAMERA_MODELS", "INIT_MIN_TRI_ANGLE", "MAPPERS", "MATCHERS", "ProcessOptions", "process"]
 
 MATCHERS = ("auto", "exhaustive", "sequential", "spatial", "vocabtree")
 MAPPERS = ("incremental", "global")
+INIT_MIN_TRI_ANGLE = 8.0  # the incremental mapper's default first-pair angle (COLMAP's is 16)
 CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL", "OPENCV_FISHEYE", "FULL_OPENCV")
 # What process writes into SCENE (and replaces with overwrite).
 OUTPUTS = ("input", "distorted", "images", "images_2", "images_4", "images_8", "sparse", "stereo", "process.json")
@@ -59,10 +60,11 @@ class ProcessOptions:
     per_image_camera: bool = False  # one camera per image instead of one shared camera
     mapper: str = "incremental"
     calibrate_view_graph: bool = False  # global mapper: focal lengths from the view graph first
-    # Incremental mapper: the smallest triangulation angle of its first pair, in degrees (COLMAP's
-    # 16). On bonsai, 16 made it start from a wide pair with many wrong matches, and the model
-    # grew in pieces; 4 to 12 gave whole models (docs/process.md).
-    init_min_tri_angle: float = 16.0
+    # Incremental mapper: the smallest triangulation angle of its first pair, in degrees (None:
+    # 8 for the incremental mapper). COLMAP's 16 made it start bonsai from a wide pair with many
+    # wrong matches and the model broke, with OPENCV, PINHOLE and SIMPLE_RADIAL cameras alike; at 8
+    # SIMPLE_RADIAL kept it whole (docs/process.md).
+    init_min_tri_angle: float | None = None
     max_image_size: int = 3200  # SIFT works on images at most this large (longer side)
     max_features: int = 8192
     device: str = "auto"  # auto, cpu, cuda (features and matching)
@@ -85,7 +87,7 @@ class ProcessOptions:
             (self.threads >= 0, f"--threads must be 0 (all cores) or more, got {self.threads}"),
             (self.frames >= 3, f"--frames must be at least 3, got {self.frames}"),
             (
-                0.0 < self.init_min_tri_angle < 90.0,
+                self.init_min_tri_angle is None or 0.0 < self.init_min_tri_angle < 90.0,
                 f"--init-min-tri-angle must be in (0, 90) degrees, got {self.init_min_tri_angle}",
             ),
             (self.overlap >= 1, f"--overlap must be at least 1, got {self.overlap}"),
@@ -101,8 +103,10 @@ class ProcessOptions:
             raise OptionError("--matcher vocabtree needs --vocab-tree FILE (a COLMAP vocabulary tree)")
         if self.calibrate_view_graph and self.mapper != "global":
             raise OptionError("--calibrate-view-graph calibrates for --mapper global only")
-        if self.init_min_tri_angle != 16.0 and self.mapper != "incremental":
+        if self.init_min_tri_angle is not None and self.mapper != "incremental":
             raise OptionError("--init-min-tri-angle is read by --mapper incremental only")
+        if self.init_min_tri_angle is None and self.mapper == "incremental":
+            self.init_min_tri_angle = INIT_MIN_TRI_ANGLE
         if self.vocab_tree and self.matcher != "vocabtree":
             raise OptionError("--vocab-tree is read by --matcher vocabtree only")
 
