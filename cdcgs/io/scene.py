@@ -10,7 +10,7 @@ import torch
 from ..errors import InputError, OptionError
 from .colmap import read_colmap
 from .transforms import read_transforms
-from .views import View, load_images, read_view_names, scene_extent, split_views
+from .views import View, load_images, read_view_names, scene_extent, split_views, unknown_view_names
 
 __all__ = ["Scene", "load_scene"]
 
@@ -96,7 +96,7 @@ def load_scene(
     from_file = test_views is not None and not isinstance(test_views, (list, tuple, set, frozenset))
     test_names = read_view_names(test_views) if from_file else test_views
     if test_names is not None:
-        missing = sorted(set(test_names) - {v.name for v in views})
+        missing = unknown_view_names(test_names, views)
         if missing:
             shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
             where = os.fspath(test_views) if from_file else path

@@ -32,6 +32,7 @@ __all__ = [
     "report_missing",
     "scene_extent",
     "split_views",
+    "unknown_view_names",
 ]
 
 
@@ -119,14 +120,19 @@ def split_views(
     else:
         if isinstance(test_names, str):
             raise OptionError("test_names must be a list of image names, not one string")
-        wanted = set(test_names)
-        missing = sorted(wanted - {v.name for v in views})
+        missing = unknown_view_names(test_names, views)
         if missing:
             raise OptionError(f"test_names: {len(missing)} name(s) are not views: {', '.join(missing[:8])}")
+        wanted = set(test_names)
         held = [v.name in wanted for v in views]
     test = [v for v, h in zip(views, held) if h]
     train = views if train_on_all else [v for v, h in zip(views, held) if not h]
     return train, test
+
+
+def unknown_view_names(names, views: list[View]) -> list[str]:
+    """The names, sorted, that are no view's image name."""
+    return sorted(set(names) - {v.name for v in views})
 
 
 def read_view_names(path) -> list[str]:
