@@ -139,6 +139,17 @@ def test_a_video_gives_the_true_poses_from_its_sharpest_frames(room, tmp_path):
         assert np.abs(kept - images[i]).mean() < np.abs(kept - gaussian_filter(images[i], (2.5, 2.5, 0))).mean()
     rotation_error, centre_error, _ = pose_errors(out, {f"frame_{i:05d}.png": p for i, p in enumerate(poses)})
     assert rotation_error < 0.5 and centre_error < 0.01, (rotation_error, centre_error)
+    # A camera without distortion: the frames are kept as they are, not resampled, with the camera
+    # as mapped (undistortion would move its principal point by half a pixel and blur every frame).
+    import pycolmap
+
+    assert summary["distortion_px"] == 0.0 and summary["photos_resampled"] is False
+    for name in os.listdir(out / "images"):
+        assert (out / "images" / name).read_bytes() == (out / "input" / name).read_bytes(), name
+    (mapped,) = pycolmap.Reconstruction(str(out / "distorted" / "sparse" / "0")).cameras.values()
+    (written,) = pycolmap.Reconstruction(str(out / "sparse" / "0")).cameras.values()
+    assert written.model.name == "PINHOLE" and (written.width, written.height) == (WIDTH, HEIGHT)
+    assert list(written.params) == list(mapped.params)
 
 
 def test_bad_inputs_get_clear_errors(room, tmp_path):
@@ -325,6 +336,32 @@ def test_a_smaller_first_pair_angle_reaches_the_incremental_mapper_and_keeps_the
         ProcessOptions(init_min_tri_angle=8.0, mapper="global")
     assert ProcessOptions(mapper="global").init_min_tri_angle is None
     assert ProcessOptions(init_min_tri_angle=16.0).init_min_tri_angle == 16.0  # COLMAP's, on request
+
+
+def test_the_distortion_is_measured_in_pixels_as_a_float64_reference_gives_it():
+    """``_distortion_px``: the most a pixel moves between the camera and its pinhole part, against
+    the inverse of the radial model by fixed-point iteration in float64, at the image's corners
+    (where a radial distortion is largest); 0 without distortion."""
+    import pycolmap
+
+    f, width, height = 500.0, 400, 300
+    for k in (1e-3, -2e-2, 0.0):
+        camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=width, height=height, params=[f, 200.0, 150.0, k])
+        worst = 0.0
+        for u, v in ((0, 0), (width, 0), (0, height), (width, height)):
+            xd, yd = (u - 200.0) / f, (v - 150.0) / f
+            x, y = xd, yd
+            for _ in range(200):  # x (1 + k r^2) = xd
+                r2 = x * x + y * y
+                x, y = xd / (1 + k * r2), yd / (1 + k * r2)
+            worst = max(worst, f * abs(x - xd), f * abs(y - yd))
+        assert process_pipeline._distortion_px(camera) == pytest.approx(worst, rel=1e-4, abs=1e-9), k
+    pinhole = pycolmap.Camera(model="PINHOLE", width=width, height=height, params=[f, f, 200.0, 150.0])
+    assert process_pipeline._distortion_px(pinhole) == 0.0
+    # Below the tolerance the photos are kept: bonsai's SIMPLE_RADIAL camera (k = -1.7e-5) moves
+    # a pixel by 0.002 px, under KEEP_PHOTOS_BELOW_PX.
+    bonsai = pycolmap.Camera(model="SIMPLE_RADIAL", width=800, height=533, params=[826.1, 400.0, 266.5, -1.69e-5])
+    assert process_pipeline._distortion_px(bonsai) < process_pipeline.KEEP_PHOTOS_BELOW_PX
 
 
 def test_the_path_check_finds_a_seam_and_leaves_a_collection_alone():

@@ -42,6 +42,11 @@ CAMERA_MODELS = ("SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL
 # What process writes into SCENE (and replaces with overwrite).
 OUTPUTS = ("input", "distorted", "images", "images_2", "images_4", "images_8", "sparse", "stereo", "process.json")
 MIN_FEATURES = 100  # an image with fewer SIFT features is reported as featureless
+# Undistortion resamples every photo (bilinear), and COLMAP's undistorter also moves the principal
+# point to the new image's centre: with almost no distortion that is a shift by half a pixel, a 2 x 2
+# blur of every photo. Where no camera's distortion moves any pixel by more than this, the photos
+# are kept as they are, with each camera's pinhole part.
+KEEP_PHOTOS_BELOW_PX = 0.1
 
 
 @dataclass(kw_only=True)
@@ -382,8 +387,12 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options, repo
             kept_dir = os.path.join(distorted, "kept")
             os.makedirs(kept_dir, exist_ok=True)
             best.write(kept_dir)
-            pycolmap.undistort_images(out, kept_dir, input_dir)
             model_dir = os.path.join(out, "sparse", "0")
+            distortion = max(_distortion_px(camera) for camera in best.cameras.values())
+            if distortion <= KEEP_PHOTOS_BELOW_PX:
+                _keep_photos(pycolmap, pycolmap.Reconstruction(kept_dir), input_dir, out, model_dir)
+            else:
+                pycolmap.undistort_images(out, kept_dir, input_dir)
             os.makedirs(model_dir, exist_ok=True)
             for name in os.listdir(os.path.join(out, "sparse")):
                 path = os.path.join(out, "sparse", name)
@@ -416,6 +425,8 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options, repo
         "path": path,
         "matcher": matcher,
         "mapper": options.mapper,
+        "distortion_px": distortion,
+        "photos_resampled": distortion > KEEP_PHOTOS_BELOW_PX,
         "device": device_name,
         "seconds": stages.seconds,
         "pycolmap": pycolmap.__version__,
@@ -423,6 +434,44 @@ def _process(pycolmap, input_path, out, kind, device, device_name, options, repo
     }
     write_json(os.path.join(out, "process.json"), summary)
     return summary
+
+
+def _distortion_px(camera, grid: int = 33) -> float:
+    """The most that ``camera``'s lens distortion moves a pixel, over a grid of ``grid`` x ``grid``
+    points spanning the image (corners included): each point taken to the camera's undistorted
+    coordinates and back through its pinhole part (focal lengths and principal point) alone. 0 for
+    a camera without distortion."""
+    import numpy as np
+
+    u, v = np.meshgrid(np.linspace(0.0, camera.width, grid), np.linspace(0.0, camera.height, grid))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+    normalized = np.asarray(camera.cam_from_img(pixels), dtype=np.float64)
+    if not np.isfinite(normalized).all():  # a point the model cannot undistort: treat as distorted
+        return float("inf")
+    pinhole = normalized * [camera.focal_length_x, camera.focal_length_y] + [
+        camera.principal_point_x,
+        camera.principal_point_y,
+    ]
+    return float(np.abs(pinhole - pixels).max())
+
+
+def _keep_photos(pycolmap, model, input_dir: str, out: str, model_dir: str) -> None:
+    """The undistortion stage for cameras with no distortion worth resampling for
+    (:data:`KEEP_PHOTOS_BELOW_PX`): the registered photos copied unchanged to ``out/images`` and the
+    model written to ``model_dir`` with each camera's pinhole part (PINHOLE: fx, fy, cx, cy)."""
+    for camera in model.cameras.values():
+        params = [camera.focal_length_x, camera.focal_length_y, camera.principal_point_x, camera.principal_point_y]
+        camera.model = pycolmap.CameraModelId.PINHOLE
+        camera.params = params
+        model.cameras[camera.camera_id] = camera
+    images_dir = os.path.join(out, "images")
+    for image in model.images.values():
+        if image.has_pose:
+            target = os.path.join(images_dir, image.name)
+            os.makedirs(os.path.dirname(target), exist_ok=True)
+            shutil.copyfile(os.path.join(input_dir, image.name), target)
+    os.makedirs(model_dir, exist_ok=True)
+    model.write(model_dir)
 
 
 def _threads(options: ProcessOptions) -> int:
