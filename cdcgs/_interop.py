@@ -17,6 +17,7 @@ __all__ = [
     "BRIDGE",
     "TorchWarpBridge",
     "ensure_warp",
+    "halt_arg",
     "launch",
     "torch_allocators",
     "torch_tensor",
@@ -285,3 +286,16 @@ def torch_allocators(device: torch.device):
         return wp_array(torch.zeros(shape, dtype=_TORCH_DTYPES[dtype], device=device), dtype)
 
     return allocate, zeros
+
+
+def halt_arg(halt: torch.Tensor | None, device: torch.device):
+    """The ``halt`` argument of the kernels that change a training's state (Adam, the densification
+    statistics, MCMC's noise): ``halt``, an int32 device tensor whose first entry stops them while
+    non-zero, or an empty array (never halted) for None."""
+    if halt is None:
+        halt = torch.empty(0, dtype=torch.int32, device=device)
+    elif halt.dtype != torch.int32 or halt.device != torch.device(device) or halt.numel() < 1:
+        raise ValueError(
+            f"halt must be an int32 tensor of at least one entry on {device}, got {halt.dtype} {list(halt.shape)} on {halt.device}"
+        )
+    return wp_arg(halt, wp.int32)

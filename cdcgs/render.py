@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from ._interop import halt_arg as _halt_arg
 from ._interop import launch as _launch
 from ._interop import torch_allocators as _torch_allocators
 from ._interop import torch_tensor as _torch
@@ -192,12 +193,18 @@ class RasterizeInfo:
         return (grad * scale).norm(dim=-1)
 
     def accumulate_statistics(
-        self, grad_sum: torch.Tensor, count: torch.Tensor, max_radius: torch.Tensor, absolute: bool = False
+        self,
+        grad_sum: torch.Tensor,
+        count: torch.Tensor,
+        max_radius: torch.Tensor,
+        absolute: bool = False,
+        halt: torch.Tensor | None = None,
     ) -> None:
         """Add this view's densification statistics in place, one launch: for every Gaussian it
         sees (both radii > 0) :meth:`positional_gradient` (``absolute``: AbsGS's) to ``grad_sum``,
         1 to ``count``, and its largest radius into ``max_radius`` (each [N] float32 on the
-        render's device). Valid after ``backward``, as :meth:`positional_gradient`."""
+        render's device). Valid after ``backward``, as :meth:`positional_gradient`. ``halt``: an
+        int32 device flag; while its first entry is non-zero nothing is added."""
         gradient = self._gradient(absolute)
         n = gradient.shape[0]
         for name, tensor in (("grad_sum", grad_sum), ("count", count), ("max_radius", max_radius)):
@@ -219,7 +226,12 @@ class RasterizeInfo:
                     0.5 * self.width,
                     0.5 * self.height,
                 ],
-                outputs=[_arg(grad_sum, wp.float32), _arg(count, wp.float32), _arg(max_radius, wp.float32)],
+                outputs=[
+                    _arg(grad_sum, wp.float32),
+                    _arg(count, wp.float32),
+                    _arg(max_radius, wp.float32),
+                    _halt_arg(halt, gradient.device),
+                ],
             )
 
 

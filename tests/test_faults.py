@@ -184,10 +184,13 @@ def poison_loss(monkeypatch, at: int, how: str) -> None:
     monkeypatch.setattr(trainer_module, "fused_photometric_loss", poisoned)
 
 
-@pytest.mark.parametrize("how", ["loss", "gradients"])
-def test_nan_stops_the_run_and_keeps_the_last_good_checkpoint(tiny_scene, tmp_path, monkeypatch, capsys, how):
+@pytest.mark.parametrize("how, sync", [("loss", ""), ("gradients", ""), ("gradients", "--sync-free")])
+def test_nan_stops_the_run_and_keeps_the_last_good_checkpoint(tiny_scene, tmp_path, monkeypatch, capsys, how, sync):
+    """Also with --sync-free, where the render of iteration 34 flags the NaN on the device and the
+    run finds it at its next read (the log of iteration 50), goes back to 34 and stops the same."""
     poison_loss(monkeypatch, 33, how)
     argv = [*train_argv(tiny_scene, tmp_path, ITERS), "--checkpoint-every", "30", "--eval-every", "0"]
+    argv += [sync] if sync else []
     assert cli_main(argv) == 3
     message = capsys.readouterr().err
     # NaN gradients (from a NaN loss or not) make the parameters NaN in that iteration's update,

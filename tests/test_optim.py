@@ -152,7 +152,11 @@ def test_the_fused_kernel_from_plain_warp(device):
         [[lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bc1, np.sqrt(bc2)] for lr in lrs], dtype=float, device=wp_device
     )
     mask = wp.array(selected, dtype=wp.uint8, device=wp_device)
-    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[parameters, rates, mask], device=wp_device)
+    never = wp.empty(0, dtype=wp.int32, device=wp_device)  # halt: empty, never halted
+    halt = wp.ones(1, dtype=wp.int32, device=wp_device)
+    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[parameters, rates, mask, halt], device=wp_device)
+    assert np.array_equal(arrays[0][0].numpy(), values[0]), "a set halt changes nothing"
+    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[parameters, rates, mask, never], device=wp_device)
     for k, w in enumerate(widths):
         g = grads[k].astype(np.float64)
         m = beta1 * m0[k] + (1 - beta1) * g

@@ -531,10 +531,15 @@ def test_mcmc_noise_kernel_from_warp_arrays_alone(device):
         wp.array(a.astype(np.float32), dtype=d, device=device)
         for a, d in ((quats, wp.vec4), (log_scales, wp.vec3), (logits, wp.float32), (z, wp.vec3))
     ]
+    never = wp.empty(0, dtype=wp.int32, device=device)  # halt: empty, never halted
     noise = wp.zeros(n, dtype=wp.vec3, device=device)  # out: zeros, to get the noise itself
-    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale], outputs=[noise], device=device)
+    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale, never], outputs=[noise], device=device)
     moved = wp.array(means.astype(np.float32), dtype=wp.vec3, device=device)  # out: the means
-    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale], outputs=[moved], device=device)
+    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale, never], outputs=[moved], device=device)
+    halted = wp.array(means.astype(np.float32), dtype=wp.vec3, device=device)
+    halt = wp.ones(1, dtype=wp.int32, device=device)
+    wp.launch(mcmc_noise_kernel, n, inputs=[*arrays, k, t, scale, halt], outputs=[halted], device=device)
+    assert np.array_equal(halted.numpy(), means.astype(np.float32)), "a set halt changes nothing"
     expected = np.zeros((n, 3))
     for i in range(n):
         w, x, y, c = quats[i] / np.linalg.norm(quats[i])

@@ -24,11 +24,15 @@ def accumulate_statistics_kernel(
     grad_sum: wp.array(dtype=float),
     count: wp.array(dtype=float),
     max_radius: wp.array(dtype=float),
+    halt: wp.array(dtype=wp.int32),
 ):
     """For Gaussian ``i`` with both radii > 0: ``grad_sum[i] += |(g.x W/2, g.y H/2)|``,
     ``count[i] += 1``, ``max_radius[i] = max(max_radius[i], max(radii[i]))``; the others as they
-    are."""
+    are. Nothing while ``halt[0]`` is non-zero (``halt`` empty: never; see ``fused_adam_kernel``)."""
     i = wp.tid()
+    if halt.shape[0] > 0:
+        if halt[0] != 0:
+            return
     r = radii[i]
     if r[0] <= 0 or r[1] <= 0:
         return

@@ -13,6 +13,9 @@ no weight decay, no amsgrad) through one function, ``adam_update``:
 
 Both take ``selected``, one entry per row: a row whose entry is 0 keeps its values and both
 moments ("selective Adam"; ``fused_adam_kernel`` with an empty ``selected`` updates every row).
+``fused_adam_kernel`` also takes ``halt``, a device flag: while ``halt[0]`` is non-zero it changes
+nothing (a training that renders without reading its counts sets it when a render overflowed, and
+steps again once the host has seen it; :mod:`cdcgs.train.lookahead`). An empty ``halt`` never halts.
 Leaving the moments of unselected rows undecayed is the point and the approximation: a Gaussian
 that the view does not see neither moves nor forgets (Taming 3DGS's and gsplat's SelectiveAdam),
 where Adam would still move it by its momentum.
@@ -58,8 +61,10 @@ def fused_adam_kernel(
     parameters: wp.array2d(dtype=wp.int64),
     rates: wp.array2d(dtype=float),
     selected: wp.array(dtype=wp.uint8),
+    halt: wp.array(dtype=wp.int32),
 ):
-    """One Adam step of every parameter of the tables, one thread per value.
+    """One Adam step of every parameter of the tables, one thread per value; nothing while
+    ``halt[0]`` is non-zero (``halt`` empty: never).
 
     Row ``k`` of ``parameters`` [P, 7] describes parameter ``k``: the addresses of its value,
     gradient, exp_avg and exp_avg_sq arrays (float32, contiguous), then the first launch index it
@@ -70,6 +75,9 @@ def fused_adam_kernel(
     per row shared by every parameter, or empty for every row. (One int64 table and one float
     table: two small copies to the device a step.)"""
     i = wp.tid()
+    if halt.shape[0] > 0:
+        if halt[0] != 0:
+            return
     k = int(0)
     while k + 1 < parameters.shape[0] and i >= int(parameters[k + 1, 4]):
         k += 1

@@ -30,10 +30,15 @@ def mcmc_noise_kernel(
     k: float,
     t: float,
     scale: float,
+    halt: wp.array(dtype=wp.int32),
     means_out: wp.array(dtype=wp.vec3),
 ):
-    """``means_out[i] += R diag(s²) Rᵀ z[i] · sigmoid(-k (o - t)) · scale`` of Gaussian ``i`` (dim = N)."""
+    """``means_out[i] += R diag(s²) Rᵀ z[i] · sigmoid(-k (o - t)) · scale`` of Gaussian ``i`` (dim = N);
+    nothing while ``halt[0]`` is non-zero (``halt`` empty: never; see ``fused_adam_kernel``)."""
     i = wp.tid()
+    if halt.shape[0] > 0:
+        if halt[0] != 0:
+            return
     rotation = quat_to_rotation(quats[i])  # the projection's: (w, x, y, z), normalised
     s = log_scales[i]
     variance = wp.vec3(wp.exp(2.0 * s[0]), wp.exp(2.0 * s[1]), wp.exp(2.0 * s[2]))

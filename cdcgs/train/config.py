@@ -189,6 +189,10 @@ class TrainConfig:
         "none, or dash: DashGaussian's schedule, low resolution first, raised with the photos' frequency content until densification ends, and the position learning rate's decay held until half resolution (none: the preset's, none; dash for fast)",
         choices=RESOLUTION_SCHEDULES,
     )
+    sync_free: bool = option(
+        False,
+        "render a view into slots sized by its last count of pairs instead of reading the count, so the host never waits for the GPU between the reads a training makes anyway (logs, densification, evaluation); a render that overflows its slots halts every update until the next read, which takes the iterations from it again: the same run as without (one process; adam or selective)",
+    )
     batch_size: int = option(
         1,
         "training views per step, their gradients averaged (over all processes of a torchrun launch); the schedules count views, so B views per step take 1/B of the steps",

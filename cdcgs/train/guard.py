@@ -48,14 +48,20 @@ class NumericGuard:
         if state:
             self.load_state_dict(state)
 
-    def record(self, loss: torch.Tensor, psnr: torch.Tensor) -> None:
-        """Add an iteration's loss and PSNR; no host synchronisation."""
+    def record(self, loss: torch.Tensor, psnr: torch.Tensor, halt: torch.Tensor | None = None) -> None:
+        """Add an iteration's loss and PSNR; no host synchronisation. ``halt``: an int32 device
+        flag; while its first entry is non-zero the means stay as they are (the iteration is taken
+        again later)."""
         loss, psnr = loss.detach().float(), psnr.detach().float()
         if self.loss_mean is None:
             self.loss_mean, self.psnr_mean = loss.clone(), psnr.clone()
-        else:
+        elif halt is None:
             self.loss_mean.lerp_(loss, 1 - SMOOTHING)
             self.psnr_mean.lerp_(psnr, 1 - SMOOTHING)
+        else:  # halted: each mean moves towards itself, which leaves it exactly (also for a NaN loss)
+            live = halt[0] == 0
+            self.loss_mean.lerp_(torch.where(live, loss, self.loss_mean), 1 - SMOOTHING)
+            self.psnr_mean.lerp_(torch.where(live, psnr, self.psnr_mean), 1 - SMOOTHING)
         if self.reference is None:
             self.reference = loss.clone()
 

@@ -35,7 +35,7 @@ import torch
 import warp as wp
 from torch.autograd.graph import increment_version
 
-from .._interop import launch, warp_scope, wp_arg
+from .._interop import halt_arg, launch, warp_scope, wp_arg
 from ..errors import OptionError
 from ..kernels.mcmc import mcmc_noise_kernel
 from . import ops
@@ -106,11 +106,13 @@ def position_noise(
     t: float,
     generator: torch.Generator,
     out: torch.Tensor | None = None,
+    halt: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """[N, 3] 3DGS-MCMC's perturbation of the means: Σ z sigmoid(-k (o - t)) noise_lr lr, with
     Σ = R S^2 R^T of each Gaussian and z ~ N(0, I) drawn from ``generator``; added to ``out``
     ([N, 3] float32, e.g. the means) when given, and returned. One kernel
-    (:data:`cdcgs.kernels.mcmc.mcmc_noise_kernel`) after the draw."""
+    (:data:`cdcgs.kernels.mcmc.mcmc_noise_kernel`) after the draw; nothing is added while
+    ``halt`` (an int32 device flag) is set."""
     params = model.params
     z = torch.randn(model.num, 3, device=model.device, generator=generator)
     target = torch.zeros_like(z) if out is None else out
@@ -133,6 +135,7 @@ def position_noise(
                 float(k),
                 float(t),
                 float(noise_lr * lr),
+                halt_arg(halt, model.device),
             ],
             outputs=[wp_arg(target, wp.vec3)],
         )
@@ -234,7 +237,9 @@ class MCMC(Consistency, StrategyOptions):
         lr = next(g["lr"] for g in ctx.optimizer.param_groups if g["name"] == "means")
         with torch.no_grad():  # added to the means in place
             means = ctx.model.params["means"].detach()
-            position_noise(ctx.model, lr, self.noise_lr, self.noise_k, self.noise_t, ctx.generator, out=means)
+            position_noise(
+                ctx.model, lr, self.noise_lr, self.noise_k, self.noise_t, ctx.generator, out=means, halt=ctx.halt
+            )
 
     # --- pieces -------------------------------------------------------------------------------
 

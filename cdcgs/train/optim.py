@@ -19,7 +19,7 @@ import torch
 import warp as wp
 from torch.autograd.graph import increment_version
 
-from .._interop import launch, warp_scope, wp_arg
+from .._interop import halt_arg, launch, warp_scope, wp_arg
 from ..kernels.adam import fused_adam_kernel
 
 __all__ = ["FusedAdam", "SelectiveAdam"]
@@ -36,9 +36,11 @@ class FusedAdam(torch.optim.Optimizer):
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
 
     @torch.no_grad()
-    def step(self, selected: torch.Tensor | None = None, closure=None):
+    def step(self, selected: torch.Tensor | None = None, closure=None, halt: torch.Tensor | None = None):
         """One Adam step of the rows where ``selected`` [N] (bool) is True; every row without it.
-        Parameters without a gradient are skipped, as Adam skips them."""
+        Parameters without a gradient are skipped, as Adam skips them. ``halt``: an int32 device
+        flag; while its first entry is non-zero the launch changes nothing on the device (the step
+        counts, kept on the host, still advance: the caller that halts restores them)."""
         loss = None
         if closure is not None:
             with torch.enable_grad():
@@ -92,7 +94,12 @@ class FusedAdam(torch.optim.Optimizer):
                 launch(
                     fused_adam_kernel,
                     start,
-                    inputs=[wp_arg(tables[0], wp.int64), wp_arg(tables[1], wp.float32), wp_arg(mask, wp.uint8)],
+                    inputs=[
+                        wp_arg(tables[0], wp.int64),
+                        wp_arg(tables[1], wp.float32),
+                        wp_arg(mask, wp.uint8),
+                        halt_arg(halt, device),
+                    ],
                 )
         for _, p in updated:  # the kernel wrote through addresses: tell torch, as an in-place op would
             increment_version(p)

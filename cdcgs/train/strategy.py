@@ -54,6 +54,9 @@ class StepContext:
     complexity_maps: Any = None  # cdcgs.complexity.ComplexityMaps of the training views, owned by the run
     ranks: Any = None  # cdcgs.train.distributed.Ranks of a run on several processes (None: one process)
     resolution_scale: int | None = None  # the downscale this iteration renders at (None: no --resolution-schedule)
+    # --sync-free: an int32 device flag; while set, no hook may change anything on the device (the
+    # step is taken again later). Pass it to the kernels that take ``halt``. None: never set.
+    halt: Any = None
 
 
 @runtime_checkable
@@ -341,7 +344,9 @@ class ADC(StrategyOptions):
     def accumulate(self, ctx: StepContext, state: dict) -> None:
         """Add this view's positional gradient norm and screen radius of every visible Gaussian
         (one launch: :meth:`cdcgs.render.RasterizeInfo.accumulate_statistics`)."""
-        ctx.info.accumulate_statistics(state["grad_sum"], state["count"], state["max_radius"], absolute=self.absgrad)
+        ctx.info.accumulate_statistics(
+            state["grad_sum"], state["count"], state["max_radius"], absolute=self.absgrad, halt=ctx.halt
+        )
 
     def mean_gradient(self, state: dict) -> torch.Tensor:
         return torch.where(

@@ -27,6 +27,7 @@ from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank
 from .evaluate import evaluate, lpips_metric
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
+from .lookahead import Lookahead
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer, set_hyperparameters
@@ -176,6 +177,10 @@ def mean_communication(summaries: list[dict], backend: str | None) -> dict:
     }
 
 
+class _Rewound(Exception):
+    """A read found a halted iteration and the trainer went back to it (``--sync-free``)."""
+
+
 class Trainer:
     """Runs one training from a :class:`TrainConfig` (``run()``), or resumes it.
 
@@ -212,6 +217,8 @@ class Trainer:
         self._reduce_ms = self._wait_ms = 0.0
         self._reduce_bytes = 0
         self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
+        self.lookahead: Lookahead | None = None  # --sync-free
+        self._snapshots: dict[int, dict] = {}  # --sync-free: iteration -> what the host needs to take it again
 
     # ----------------------------------------------------------------------------- set-up
 
@@ -253,6 +260,7 @@ class Trainer:
                 "--budget-schedule dash grows the Gaussian budget with the training resolution: it needs "
                 "--resolution-schedule dash"
             )
+        self._check_sync_free()
         d = config.data
         self.scene = load_scene(d.data, device=self.device, progress=config.progress, **d.scene_options())
         # Each training view's camera, checked and built once (the render would redo it every step).
@@ -316,6 +324,7 @@ class Trainer:
         self.lpips = lpips_metric(self.device)
         kinds = self.strategy.statistics()
         self.statistics = StatisticsSync(self.ranks, kinds) if self.ranks.distributed else None
+        self.lookahead = Lookahead(self.device, len(self.scene.train)) if config.sync_free else None
         config_json = {
             "train": config_to_dict(config),
             "processes": self.ranks.world,
@@ -323,6 +332,22 @@ class Trainer:
             "scene": self._scene_summary(),
         }
         self._config_json = config_json  # written once every process has set up
+
+    def _check_sync_free(self) -> None:
+        config = self.config
+        if not config.sync_free:
+            return
+        if self.ranks.distributed:
+            raise OptionError("--sync-free trains on one process: drop it for a torchrun launch of several")
+        if config.optimizer not in ("adam", "selective"):
+            raise OptionError(
+                f"--sync-free halts Adam on the device, which --optimizer {config.optimizer} cannot: use adam or selective"
+            )
+        if getattr(self.strategy, "complexity_schedule", None) == "online" and self.strategy.needs_complexity:
+            raise OptionError(
+                "--sync-free cannot be combined with --complexity-schedule online, which adds every render to Γ "
+                "with torch operations that a halt does not stop (use the full schedule)"
+            )
 
     def _scene_summary(self) -> dict:
         s = self.scene
@@ -392,13 +417,14 @@ class Trainer:
             self._scaled[key] = (prepare_camera(view.viewmat, K, width, height), target)
         return self._scaled[key]
 
-    def _render(self, view_index: int, background=None, scale: int = 1):
+    def _render(self, view_index: int, background=None, scale: int = 1, capacity: int | None = None):
         camera = self.cameras[view_index] if scale == 1 else self._scaled_view(view_index, scale)[0]
         return rasterize(
             **self.model.render_args(),
             camera=camera,
             background=self.background if background is None else background,
             antialiased=self.config.antialiased,
+            capacity=capacity,
         )
 
     def _bins(self, view_index: int):
@@ -445,6 +471,8 @@ class Trainer:
     def save(self, ply: bool = True) -> None:
         """Write the checkpoint (and the PLY), after the numeric guard's check: a state with
         non-finite numbers is never written. The first signal does not cut a save."""
+        if self.lookahead is not None:
+            self._settle()  # a halted iteration: the state before it is the one to write
         self.check_numbers(params=True)
         with self.signals.deferred():
             if self.ranks.is_main:  # the others hold the same state
@@ -564,6 +592,8 @@ class Trainer:
         first = self.step + 1
         count = min(config.batch_size, config.iters - self.step)
         last = self.step + count
+        if self.lookahead is not None:
+            self._snapshots[first] = self._host_state()
         timed = self.ranks.distributed and (first // config.batch_size) % TIME_COMMUNICATION_EVERY == 10
         if timed:
             self._synchronize()
@@ -597,6 +627,7 @@ class Trainer:
         self.step_events = []
         for iteration in range(first, last + 1):
             if self.strategy.refines_at(iteration):
+                self._settle_in_step()  # a refinement reads the Gaussians: no halted iteration before it
                 # On several processes the parameters too: a refinement may render views (CDC's Γ
                 # pass) that meet NaN on one process only, which must not stop it alone.
                 self.check_numbers(params=self.ranks.distributed)
@@ -609,10 +640,11 @@ class Trainer:
                     self.step_events.append((iteration, log))
                 if self.statistics is not None:
                     self.statistics.begin(self.strategy_state)  # the new Gaussians' statistics
+        halt = {} if self.lookahead is None else {"halt": self.lookahead.halt}
         if config.optimizer == "selective":
-            self.optimizer.step(self._visible if self._visible.shape[0] == self.model.num else None)
+            self.optimizer.step(self._visible if self._visible.shape[0] == self.model.num else None, **halt)
         else:
-            self.optimizer.step()
+            self.optimizer.step(**halt)
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.after_step(self._context(last), self.strategy_state)
         if timed:
@@ -640,7 +672,50 @@ class Trainer:
             complexity_maps=self.complexity_maps,
             ranks=self.ranks if self.ranks.distributed else None,
             resolution_scale=None if self.resolution is None else self._downscale(iteration),
+            halt=None if self.lookahead is None else self.lookahead.halt,
         )
+
+    # ------------------------------------------------------------------ --sync-free
+
+    def _host_state(self) -> dict:
+        """What the host needs to take the next iteration again: the step, the view order and its
+        generator, the SH degree and Adam's step counts (the device's state stays as it was while
+        halted; the step's own draws are seeded by its number)."""
+        return {
+            "step": self.step,
+            "view_queue": list(self.view_queue),
+            "view_generator": self.view_generator.get_state(),
+            "sh_degree": self.model.sh_degree,
+            "adam_steps": [(state, float(state["step"])) for state in self.optimizer.state.values() if "step" in state],
+        }
+
+    def _settle(self) -> bool:
+        """Read the device's flags (one host synchronisation). When an iteration halted, go back to
+        it (its overflowed view is rendered with the count the device recorded) and return True;
+        when it met NaN, stop as a render that reads its count does."""
+        halted = self.lookahead.read()
+        snapshots, self._snapshots = self._snapshots, {}
+        if halted is None:
+            return False
+        start = max(step for step in snapshots if step <= halted.step)
+        state = snapshots[start]
+        self.lookahead.rewinds += 1
+        self.lookahead.redone += self.step - state["step"]
+        self.optimizer.zero_grad(set_to_none=True)
+        self.step, self.view_queue = state["step"], state["view_queue"]
+        self.view_generator.set_state(state["view_generator"])
+        self.model.sh_degree = state["sh_degree"]
+        for adam, value in state["adam_steps"]:
+            adam["step"].fill_(value)
+        if not halted.overflowed:
+            self._nonfinite_at = halted.step
+            raise self._nonfinite_error()
+        return True
+
+    def _settle_in_step(self) -> None:
+        """:meth:`_settle` inside a step: going back ends the step (:class:`_Rewound`)."""
+        if self.lookahead is not None and self._settle():
+            raise _Rewound
 
     def _view_backward(self, iteration: int, view_index: int, background: torch.Tensor):
         """Render one training view at ``iteration``, add its loss's gradients and the strategy's
@@ -650,15 +725,23 @@ class Trainer:
         config = self.config
         view = self.scene.train[view_index]
         scale = self._downscale(iteration)
+        lookahead = self.lookahead
+        capacity = None if lookahead is None else lookahead.capacity(view_index, self.model.num, scale)
         try:
-            image, _, info = self._render(view_index, background, scale)
+            image, _, info = self._render(view_index, background, scale, capacity)
         except NonFiniteError:
-            # The render checks the parameters it reads: the last update made them non-finite.
+            # The render checks the parameters it reads: the last update made them non-finite,
+            # unless an earlier iteration halted (--sync-free), which is then taken again.
+            self._settle_in_step()
             if self.ranks.distributed:
                 self._nonfinite_at = self._nonfinite_at or iteration
                 return None
             self._nonfinite_at = iteration
             raise self._nonfinite_error() from None
+        if lookahead is not None and capacity is None:
+            lookahead.counted(view_index, info.num_intersections, self.model.num, scale)
+        elif lookahead is not None:
+            lookahead.note(info, iteration, view_index, self.model.num, scale)
         photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
         if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
             loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
@@ -673,7 +756,7 @@ class Trainer:
         if regularizer is not None:
             loss = loss + regularizer
         loss.backward()  # each view's full gradient; _reduce averages them
-        self.guard.record(loss, image_psnr)
+        self.guard.record(loss, image_psnr, None if lookahead is None else lookahead.halt)
         self.strategy.observe(ctx, self.strategy_state)
         return info
 
@@ -864,8 +947,17 @@ class Trainer:
         config = self.config
         before = self.step
         start = time.perf_counter()
-        self.train_step()
-        self.train_seconds += time.perf_counter() - start
+        try:
+            self.train_step()
+        except _Rewound:
+            self.train_seconds += time.perf_counter() - start
+            self._show_rewind(bar)
+            return
+        if self.lookahead is not None and self._reads_at(before, self.step) and self._settle():
+            self.train_seconds += time.perf_counter() - start
+            self._show_rewind(bar)
+            return
+        self.train_seconds += time.perf_counter() - start  # with --sync-free, the read's wait for the GPU
         for callback in self.callbacks:
             callback.on_step(self)
         for iteration, strategy_log in self.step_events:
@@ -904,6 +996,22 @@ class Trainer:
             self._raise_pending()  # the interrupt's checkpoint is this one, with the PLY
             self.save(ply=False)
 
+    def _reads_at(self, before: int, step: int) -> bool:
+        """Whether the step from ``before`` to ``step`` ends where the run reads the device anyway
+        (logs, evaluation, checkpoint, the end): --sync-free reads its flags there."""
+        config = self.config
+        return (
+            step == config.iters
+            or crossed(before, step, config.log_every)
+            or (not config.progress and crossed(before, step, 1000))
+            or crossed(before, step, config.eval_every)
+            or crossed(before, step, config.checkpoint_every)
+        )
+
+    def _show_rewind(self, bar) -> None:
+        bar.n = self.step
+        bar.refresh()
+
     def finish(self) -> dict:
         self.save()
         self._raise_pending()  # a signal during that save: the run is saved, stop here
@@ -932,6 +1040,8 @@ class Trainer:
             "peak_gpu_memory_gb_per_process": list(peaks),
             "held_gpu_memory_per_process": list(helds),
         }
+        if self.lookahead is not None:
+            result["sync_free"] = self.lookahead.summary()
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
             summaries = self.ranks.all_gather_object(self._communication_summary())

@@ -1,0 +1,127 @@
+"""Training steps that never wait for the device (``--sync-free``).
+
+A render sizes its sort by the view's number of (tile, Gaussian) pairs, and reading that count
+makes the host wait, once a view, for every kernel queued before it. With ``--sync-free`` a view
+whose count is known from an earlier render is rendered into a fixed number of slots instead
+(``rasterize(capacity=...)``: the count seen last, scaled by how much the Gaussians grew since, times
+:data:`MARGIN`, plus :data:`FLOOR`), and the host runs ahead: it reads the device only where a
+training reads it anyway (logs, densification, evaluation, checkpoints, the end).
+
+What a render did not check is checked on the device (:data:`cdcgs.kernels._lookahead.note_render_kernel`):
+a render whose pairs overflowed its slots, or whose inputs held NaN, sets a flag, ``halt``, and
+records its iteration. While ``halt`` is set, every kernel that changes the training's state does
+nothing: Adam (``FusedAdam``), the densification statistics, MCMC's noise and the guard's running
+means. At the next read the trainer sees the flag, goes back to the iteration that set it (the host
+keeps what it needs to start each iteration again: the view order, the spherical-harmonics degree,
+Adam's step counts) and takes it again, now with the count that the device recorded. So no gradient
+of an incomplete render is ever applied, and without an overflow the run is the one that reads
+every count (``tests/test_lookahead.py``). A view rendered for the first time, or whose slots would
+exceed ``MAX_CAPACITY``, reads its count as before.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import warp as wp
+
+from .._interop import launch, warp_scope, wp_arg
+from ..kernels._lookahead import note_render_kernel
+from ..render import MAX_CAPACITY
+
+__all__ = ["FLOOR", "MARGIN", "Halted", "Lookahead"]
+
+# Slots of a view = its last count x (Gaussians now / Gaussians then) x MARGIN + FLOOR. The sort's
+# work grows with the slots; an overflow costs the iterations since the last read.
+MARGIN = 1.25
+FLOOR = 4096
+
+# Causes of a halt, as note_render_kernel writes them.
+OVERFLOW = 1
+
+
+class Halted:
+    """What a read found: the first iteration whose render overflowed (``cause`` 1) or met a
+    non-finite input (``cause`` 2 + the input's index), and that render's count of pairs."""
+
+    def __init__(self, step: int, cause: int, count: int):
+        self.step, self.cause, self.count = step, cause, count
+
+    @property
+    def overflowed(self) -> bool:
+        return self.cause == OVERFLOW
+
+
+class Lookahead:
+    """The device flags and the counts of one training's views (``num_views`` training views)."""
+
+    def __init__(self, device: torch.device, num_views: int):
+        self.device = torch.device(device)
+        self.halt = torch.zeros(1, dtype=torch.int32, device=self.device)
+        self._first = torch.zeros(3, dtype=torch.int32, device=self.device)
+        self._counts = torch.zeros(max(num_views, 1), dtype=torch.int32, device=self.device)
+        self._known: dict[int, tuple[int, int, int]] = {}  # view -> (count, Gaussians then, scale)
+        self._noted: dict[int, tuple[int, int]] = {}  # views rendered with slots since the last read
+        self.renders = {"counted": 0, "within": 0}
+        self.rewinds = 0
+        self.redone = 0  # iterations taken again
+
+    def capacity(self, view: int, gaussians: int, scale: int = 1) -> int | None:
+        """Slots for ``view`` rendered at 1/``scale`` with ``gaussians`` Gaussians, or None: read
+        the count (never rendered at this scale, or more slots than a render takes)."""
+        known = self._known.get(view)
+        if known is None or known[2] != scale:
+            return None
+        count, then, _ = known
+        slots = math.ceil(count * max(1.0, gaussians / max(then, 1)) * MARGIN) + FLOOR
+        return slots if slots <= MAX_CAPACITY else None
+
+    def counted(self, view: int, count: int, gaussians: int, scale: int = 1) -> None:
+        """A render of ``view`` that read its ``count``."""
+        self._known[view] = (count, gaussians, scale)
+        self.renders["counted"] += 1
+
+    def note(self, info, step: int, view: int, gaussians: int, scale: int = 1) -> None:
+        """After a render with a capacity (``info`` its RasterizeInfo) of ``view`` at iteration
+        ``step``: its count and flags, kept on the device (one launch)."""
+        self._noted[view] = (gaussians, scale)
+        self.renders["within"] += 1
+        with warp_scope(self.device):
+            launch(
+                note_render_kernel,
+                1,
+                inputs=[wp_arg(info.pending, wp.int32), int(step), int(view)],
+                outputs=[wp_arg(self.halt, wp.int32), wp_arg(self._first, wp.int32), wp_arg(self._counts, wp.int32)],
+            )
+
+    def read(self) -> Halted | None:
+        """One host synchronisation: the counts of the views rendered since the last read, and the
+        halt (cleared here), or None when no render halted."""
+        if not self._noted:  # only a render with slots sets the halt, and the last read cleared it
+            return None
+        values = torch.cat([self.halt, self._first, self._counts]).tolist()
+        halted, counts = values[:4], values[4:]
+        for view, (gaussians, scale) in self._noted.items():
+            self._known[view] = (counts[view], gaussians, scale)
+        self._noted.clear()
+        if not halted[0]:
+            return None
+        self.halt.zero_()
+        self._first.zero_()
+        return Halted(*halted[1:])
+
+    def forget(self) -> None:
+        """Every view reads its count again (after a change that moves the counts, e.g. a new
+        render size)."""
+        self._known.clear()
+
+    def summary(self) -> dict:
+        """metrics.json's account: renders that read their count and that did not, halts, and the
+        iterations taken again."""
+        return {
+            "renders_counted": self.renders["counted"],
+            "renders_within_capacity": self.renders["within"],
+            "rewinds": self.rewinds,
+            "iterations_redone": self.redone,
+        }
