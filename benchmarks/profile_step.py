@@ -26,6 +26,11 @@ per step (Warp's and torch's), host synchronisations and device-to-host copies p
 per stage (by kernel name) and, per part of the step, host time and the GPU time of the kernels it
 launched; "rest of the step" is the wall time less the parts' host time: the trainer's own code, and
 where the GPU sets the pace, the wait for it at the window's end.
+
+``--sync-free``: the step of ``cdcgs train --sync-free``. Every training view is rendered once
+before the windows, so that each view's count is known and every render in them goes into slots;
+each window ends with the one read of the device flags that a training makes every 50 iterations
+("sync-free read"), and the row records how many renders read their count and how many halted.
 """
 
 from __future__ import annotations
@@ -135,6 +140,7 @@ def prepared(args, count: int, out: str) -> Trainer:
         eval_every=0,
         checkpoint_every=0,
         fused_loss=not args.reference_loss,
+        sync_free=args.sync_free,
     )
     options = {}
     if issubclass(strategy_class(args.strategy), MCMC):  # its budget: the profiled count
@@ -151,7 +157,19 @@ def prepared(args, count: int, out: str) -> Trainer:
     trainer.optimizer = make_optimizer(trainer.model, trainer.config.lr, trainer.scene.extent, kind)
     trainer.strategy_state = trainer.strategy.initialize_state(trainer.model)
     trainer.step = args.at - 1
+    if trainer.lookahead is not None:  # every view's count known: the windows render into slots only
+        with torch.no_grad():
+            for view in range(len(trainer.scene.train)):
+                count = trainer._render(view)[2].num_intersections
+                trainer.lookahead.counted(view, count, trainer.model.num)
+        trainer.lookahead.renders = {"counted": 0, "within": 0}
     return trainer
+
+
+def settle(trainer: Trainer) -> None:
+    """--sync-free: the read at a window's end (a halt goes back, and the window is timed anyway)."""
+    if trainer.lookahead is not None:
+        trainer._settle()
 
 
 @contextlib.contextmanager
@@ -168,6 +186,7 @@ def instrumented(trainer: Trainer, clock: PartClock):
         (optimizer, "step", "optimizer step"),
         (optimizer, "zero_grad", "zero grad"),
         (guard, "record", "guard"),
+        (trainer, "_settle", "sync-free read"),
     ]
     loss_functions = {name: getattr(trainer_module, name) for name in ("fused_photometric_loss", "photometric_loss")}
     real_backward, real_reader = torch.Tensor.backward, cdcgs.render._count_reader
@@ -205,11 +224,13 @@ def measure(args, count: int) -> dict:
         at = trainer.step
         for _ in range(args.warmup):
             trainer.train_step()
+        settle(trainer)
         trainer.step = at  # the window sits at --at, not after the warm-up
         sync()
         start = time.perf_counter()
         for _ in range(args.steps):  # the plain step: no part clocks, no profiler
             trainer.train_step()
+        settle(trainer)
         sync()
         plain_ms = (time.perf_counter() - start) * 1e3 / args.steps
         trainer.step = at
@@ -218,6 +239,7 @@ def measure(args, count: int) -> dict:
             start = time.perf_counter()
             for _ in range(args.steps):
                 trainer.train_step()
+            settle(trainer)
             sync()
             wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
             host_ms = {part: seconds * 1e3 / args.steps for part, seconds in clock.seconds.items()}
@@ -227,10 +249,13 @@ def measure(args, count: int) -> dict:
             with profile(activities=activities) as prof:
                 for _ in range(args.steps):
                     trainer.train_step()
+                settle(trainer)
                 sync()
         _, _, info = trainer._render(0)
         row = summarise(prof, args.steps, wall_ms, host_ms, trainer.model.num, info.num_intersections)
         row["plain_ms_per_step"] = plain_ms
+        if trainer.lookahead is not None:
+            row["sync_free"] = trainer.lookahead.summary()
         # One stream runs the kernels one after another: their sum over the plain step's time is
         # the GPU's busy share when nothing measures the host.
         row["kernel_share_of_plain_step"] = min(row["kernel_ms_per_step"] / plain_ms, 1.0)
@@ -385,7 +410,8 @@ def print_report(rows: list[dict], machine: str) -> None:
             [f"{r['complexity_pass']['wall_ms_per_view_one_at_a_time']:.2f}" for r in rows],
         )
         line("Γ pass: kernel ms per view", [f"{r['complexity_pass']['kernel_ms_per_view']:.2f}" for r in rows])
-    for part in [*PARTS, "rest of the step"]:
+    optional = ["sync-free read"] if any("sync-free read" in r["parts"] for r in rows) else []
+    for part in [*PARTS, *optional, "rest of the step"]:
         line(
             f"host / GPU: {part}",
             [
@@ -420,6 +446,11 @@ def main(argv=None) -> int:
     )
     parser.add_argument(
         "--complexity-views", type=int, default=0, help="also time CDC-GS's Γ pass over this many views (0: no)"
+    )
+    parser.add_argument(
+        "--sync-free",
+        action="store_true",
+        help="the step of cdcgs train --sync-free (renders into slots, no count read)",
     )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)

@@ -158,6 +158,18 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
     )
     (row,) = json.loads(mcmc.read_text())["rows"]
     assert row["gaussians"] == 200 and row["parts"]["strategy after step"]["host_ms"] > 0
+    # The --sync-free step: every render of the windows goes into slots and none reads its count;
+    # the window's one read is a part of its own.
+    free = tmp_path / "free.json"
+    assert (
+        profile_step.main(
+            [*argv[:2], "--gaussians", "200", "--steps", "2", "--warmup", "1", "--sync-free", "--out", str(free)]
+        )
+        == 0
+    )
+    (row,) = json.loads(free.read_text())["rows"]
+    assert row["sync_free"]["renders_counted"] == 0 and row["sync_free"]["renders_within_capacity"] == 1 + 3 * 2
+    assert "intersection count (sync)" not in row["parts"] and row["parts"]["sync-free read"]["host_ms"] > 0
     boxes = tmp_path / "boxes.json"
     assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0
     for exact, box in zip(rows, json.loads(boxes.read_text())["rows"]):
