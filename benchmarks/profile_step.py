@@ -140,7 +140,7 @@ def prepared(args, count: int, out: str) -> Trainer:
         eval_every=0,
         checkpoint_every=0,
         fused_loss=not args.reference_loss,
-        sync_free=args.sync_free,
+        sync_free=getattr(args, "sync_free", False),  # host_overhead.py shares this set-up
     )
     options = {}
     if issubclass(strategy_class(args.strategy), MCMC):  # its budget: the profiled count
