@@ -167,9 +167,17 @@ def prepared(args, count: int, out: str) -> Trainer:
 
 
 def settle(trainer: Trainer) -> None:
-    """--sync-free: the read at a window's end (a halt goes back, and the window is timed anyway)."""
+    """--sync-free: the read at a window's end (a halt goes back, and the window is timed anyway;
+    the row's ``sync_free`` counts the halts, and a window with one is flagged when printed)."""
     if trainer.lookahead is not None:
         trainer._settle()
+
+
+def step(trainer: Trainer) -> None:
+    """One ``train_step``; with --sync-free one that a read inside it (before a refinement) ended
+    by going back counts as taken (the window's time holds it, and its halt is counted)."""
+    with contextlib.suppress(trainer_module._Rewound):
+        trainer.train_step()
 
 
 @contextlib.contextmanager
@@ -223,13 +231,13 @@ def measure(args, count: int) -> dict:
         sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
         at = trainer.step
         for _ in range(args.warmup):
-            trainer.train_step()
+            step(trainer)
         settle(trainer)
         trainer.step = at  # the window sits at --at, not after the warm-up
         sync()
         start = time.perf_counter()
         for _ in range(args.steps):  # the plain step: no part clocks, no profiler
-            trainer.train_step()
+            step(trainer)
         settle(trainer)
         sync()
         plain_ms = (time.perf_counter() - start) * 1e3 / args.steps
@@ -238,7 +246,7 @@ def measure(args, count: int) -> dict:
             sync()
             start = time.perf_counter()
             for _ in range(args.steps):
-                trainer.train_step()
+                step(trainer)
             settle(trainer)
             sync()
             wall_ms = (time.perf_counter() - start) * 1e3 / args.steps
@@ -248,7 +256,7 @@ def measure(args, count: int) -> dict:
             activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
             with profile(activities=activities) as prof:
                 for _ in range(args.steps):
-                    trainer.train_step()
+                    step(trainer)
                 settle(trainer)
                 sync()
         _, _, info = trainer._render(0)
@@ -411,6 +419,11 @@ def print_report(rows: list[dict], machine: str) -> None:
         )
         line("Γ pass: kernel ms per view", [f"{r['complexity_pass']['kernel_ms_per_view']:.2f}" for r in rows])
     optional = ["sync-free read"] if any("sync-free read" in r["parts"] for r in rows) else []
+    for r in rows:
+        if r.get("sync_free", {}).get("rewinds"):
+            print(
+                f"note: {r['sync_free']['rewinds']} halt(s) in the windows at {r['gaussians']:,}: their steps updated nothing"
+            )
     for part in [*PARTS, *optional, "rest of the step"]:
         line(
             f"host / GPU: {part}",

@@ -85,6 +85,34 @@ def test_overflows_halt_every_update_and_are_taken_again(tiny_scene, tmp_path, m
         assert counted.history["loss"] == free.history["loss"]
 
 
+@CPU_ONLY
+def test_a_halt_on_a_later_view_of_a_batch_also_stops_the_earlier_views_records(tiny_scene, tmp_path, monkeypatch):
+    """Batches of two, the first view of each step reading its count and the second rendered into
+    exactly its last count's slots: every halt lands on a step's second view, after the first
+    view's render. The step's guard records and densification statistics wait for its last render,
+    so the halt stops them too, and the step taken again counts each view once."""
+    counted, _ = train(tiny_scene, tmp_path / "counted", batch_size=2)
+    monkeypatch.setattr(lookahead, "MARGIN", 1.0)
+    monkeypatch.setattr(lookahead, "FLOOR", 0)
+    real, calls = lookahead.Lookahead.capacity, {"n": 0}
+
+    def second_views_only(self, view, gaussians, scale=1):
+        calls["n"] += 1  # a step renders both its views before any read: odd calls are first views
+        return None if calls["n"] % 2 else real(self, view, gaussians, scale)
+
+    monkeypatch.setattr(lookahead.Lookahead, "capacity", second_views_only)
+    free, result = train(tiny_scene, tmp_path / "free", sync_free=True, batch_size=2)
+    assert result["sync_free"]["rewinds"] > 3, result["sync_free"]
+    assert_same_model(counted, free)
+    assert counted.guard.means() == free.guard.means() and counted.history["loss"] == free.history["loss"]
+    for name, value in counted.strategy_state.items():
+        assert (
+            torch.equal(value, free.strategy_state[name])
+            if torch.is_tensor(value)
+            else value == free.strategy_state[name]
+        )
+
+
 def test_the_first_overflow_sets_the_halt_once_with_its_iteration_and_count(tiny_scene):
     """note_render_kernel on hand-made renders: the counts of each view land on the device, the
     first overflow (not a later one) is what the read reports, and a read clears the halt."""

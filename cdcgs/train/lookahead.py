@@ -5,7 +5,8 @@ makes the host wait, once a view, for every kernel queued before it. With ``--sy
 whose count is known from an earlier render is rendered into a fixed number of slots instead
 (``rasterize(capacity=...)``: the count seen last, scaled by how much the Gaussians grew since, times
 :data:`MARGIN`, plus :data:`FLOOR`), and the host runs ahead: it reads the device only where a
-training reads it anyway (logs, densification, evaluation, checkpoints, the end).
+training reads it anyway (logs, densification, evaluation, checkpoints, the end; at least every
+:data:`READ_EVERY` iterations).
 
 What a render did not check is checked on the device (:data:`cdcgs.kernels._lookahead.note_render_kernel`):
 a render whose pairs overflowed its slots, or whose inputs held NaN, sets a flag, ``halt``, and
@@ -15,8 +16,10 @@ means. At the next read the trainer sees the flag, goes back to the iteration th
 keeps what it needs to start each iteration again: the view order, the spherical-harmonics degree,
 Adam's step counts) and takes it again, now with the count that the device recorded. So no gradient
 of an incomplete render is ever applied, and without an overflow the run is the one that reads
-every count (``tests/test_lookahead.py``). A view rendered for the first time, or whose slots would
-exceed ``MAX_CAPACITY``, reads its count as before.
+every count (``tests/test_lookahead.py``). A step's guard records and densification statistics
+wait for its last render, so that a halt on a later view of a batch stops the earlier views' too.
+A view rendered for the first time, or whose slots would exceed ``MAX_CAPACITY``, reads its count
+as before. Callbacks (the viewer) see each iteration as it is taken, those taken again included.
 """
 
 from __future__ import annotations
@@ -30,12 +33,16 @@ from .._interop import launch, warp_scope, wp_arg
 from ..kernels._lookahead import note_render_kernel
 from ..render import MAX_CAPACITY
 
-__all__ = ["FLOOR", "MARGIN", "Halted", "Lookahead"]
+__all__ = ["FLOOR", "MARGIN", "READ_EVERY", "Halted", "Lookahead"]
 
 # Slots of a view = its last count x (Gaussians now / Gaussians then) x MARGIN + FLOOR. The sort's
 # work grows with the slots; an overflow costs the iterations since the last read.
 MARGIN = 1.25
 FLOOR = 4096
+
+# The most iterations between two reads (a larger --log-every would let the host run further
+# ahead, keep more iterations' host state, and lose more to an overflow).
+READ_EVERY = 100
 
 # Causes of a halt, as note_render_kernel writes them.
 OVERFLOW = 1

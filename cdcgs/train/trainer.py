@@ -27,7 +27,7 @@ from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank
 from .evaluate import evaluate, lpips_metric
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
-from .lookahead import Lookahead
+from .lookahead import READ_EVERY, Lookahead
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer, set_hyperparameters
@@ -598,11 +598,7 @@ class Trainer:
         if timed:
             self._synchronize()
             step_start = time.perf_counter()
-        lr_scale = batch_rule(config)[0]
-        for group in self.optimizer.param_groups:
-            if group["name"] == "means":
-                decay_from = 0 if self.resolution is None else self.resolution.decay_from()
-                group["lr"] = position_lr(first, config.iters, config.lr, self.scene.extent, decay_from) * lr_scale
+        self._set_position_lr(first)
         for iteration in range(first, last + 1):
             if iteration % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
                 self.model.sh_degree += 1
@@ -614,12 +610,21 @@ class Trainer:
         if self.statistics is not None:
             self.statistics.begin(self.strategy_state)
         visible = None
+        seen = []  # (loss, PSNR, context) of each view, recorded once every view of the step is rendered
         for position in my_positions(count, self.ranks.rank, self.ranks.world):
-            info = self._view_backward(first + position, views[position], backgrounds[position])
-            if info is None:  # on several processes: a render met NaN; the others learn it below
+            view = self._view_backward(first + position, views[position], backgrounds[position])
+            if view is None:  # on several processes: a render met NaN; the others learn it below
                 break
+            seen.append(view)
             if config.optimizer == "selective":
+                info = view[2].info
                 visible = info.visible if visible is None else visible | info.visible
+        # After the step's last render: with --sync-free, a halt that a later view of the batch sets
+        # also stops the earlier views' records (the step is taken again from its first view).
+        halt = None if self.lookahead is None else self.lookahead.halt
+        for loss, image_psnr, ctx in seen:
+            self.guard.record(loss, image_psnr, halt)
+            self.strategy.observe(ctx, self.strategy_state)
         if config.optimizer == "selective" and visible is None:
             visible = torch.zeros(self.model.num, dtype=torch.bool, device=self.device)
         self._reduce(count, visible, timed)
@@ -675,6 +680,15 @@ class Trainer:
             halt=None if self.lookahead is None else self.lookahead.halt,
         )
 
+    def _set_position_lr(self, first: int) -> None:
+        """The means' learning rate of the step that starts at iteration ``first``."""
+        config = self.config
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                decay_from = 0 if self.resolution is None else self.resolution.decay_from()
+                rate = position_lr(first, config.iters, config.lr, self.scene.extent, decay_from)
+                group["lr"] = rate * batch_rule(config)[0]
+
     # ------------------------------------------------------------------ --sync-free
 
     def _host_state(self) -> dict:
@@ -707,6 +721,7 @@ class Trainer:
         self.model.sh_degree = state["sh_degree"]
         for adam, value in state["adam_steps"]:
             adam["step"].fill_(value)
+        self._set_position_lr(self.step + 1)  # the rates in force at the halted iteration
         if not halted.overflowed:
             self._nonfinite_at = halted.step
             raise self._nonfinite_error()
@@ -718,10 +733,11 @@ class Trainer:
             raise _Rewound
 
     def _view_backward(self, iteration: int, view_index: int, background: torch.Tensor):
-        """Render one training view at ``iteration``, add its loss's gradients and the strategy's
-        statistics; returns the render's info. A render that meets NaN parameters stops a single
-        process at once; on several, it returns None and the processes stop together at the next
-        check (:meth:`check_numbers`)."""
+        """Render one training view at ``iteration`` and add its loss's gradients; returns its
+        (loss, PSNR, step context with the render's info) for the guard and the strategy's
+        statistics, which the step records after its last render. A render that meets NaN
+        parameters stops a single process at once; on several, it returns None and the processes
+        stop together at the next check (:meth:`check_numbers`)."""
         config = self.config
         view = self.scene.train[view_index]
         scale = self._downscale(iteration)
@@ -756,9 +772,7 @@ class Trainer:
         if regularizer is not None:
             loss = loss + regularizer
         loss.backward()  # each view's full gradient; _reduce averages them
-        self.guard.record(loss, image_psnr, None if lookahead is None else lookahead.halt)
-        self.strategy.observe(ctx, self.strategy_state)
-        return info
+        return loss, image_psnr, ctx
 
     def _reduce(self, count: int, visible: torch.Tensor | None, timed: bool) -> None:
         """Average the step's gradients over its ``count`` views (on several processes: one flat
@@ -998,7 +1012,8 @@ class Trainer:
 
     def _reads_at(self, before: int, step: int) -> bool:
         """Whether the step from ``before`` to ``step`` ends where the run reads the device anyway
-        (logs, evaluation, checkpoint, the end): --sync-free reads its flags there."""
+        (logs, evaluation, checkpoint, the end), or ``READ_EVERY`` iterations have passed: --sync-free
+        reads its flags there."""
         config = self.config
         return (
             step == config.iters
@@ -1006,6 +1021,7 @@ class Trainer:
             or (not config.progress and crossed(before, step, 1000))
             or crossed(before, step, config.eval_every)
             or crossed(before, step, config.checkpoint_every)
+            or crossed(before, step, READ_EVERY)
         )
 
     def _show_rewind(self, bar) -> None:
