@@ -293,9 +293,16 @@ def halt_arg(halt: torch.Tensor | None, device: torch.device):
     statistics, MCMC's noise): ``halt``, an int32 device tensor whose first entry stops them while
     non-zero, or an empty array (never halted) for None."""
     if halt is None:
-        halt = torch.empty(0, dtype=torch.int32, device=device)
+        halt = _never_halted(torch.device(device))
     elif halt.dtype != torch.int32 or halt.device != torch.device(device) or halt.numel() < 1:
         raise ValueError(
             f"halt must be an int32 tensor of at least one entry on {device}, got {halt.dtype} {list(halt.shape)} on {halt.device}"
         )
     return wp_arg(halt, wp.int32)
+
+
+@functools.cache
+def _never_halted(device: torch.device) -> torch.Tensor:
+    """The empty ``halt`` of a device, made once: every step of a training without --sync-free
+    passes it to Adam and the statistics kernel."""
+    return torch.empty(0, dtype=torch.int32, device=device)
