@@ -239,7 +239,7 @@ class RasterizeInfo:
 # Autograd functions
 
 
-def _project(means, quats, scales, opacities, camera: Camera, antialiased: bool, nonfinite):
+def _project(means, quats, scales, opacities, camera: PreparedCamera, antialiased: bool, nonfinite):
     """(means2d, conics, depths, opacities as composited, radii) of every Gaussian; the flags of
     non-finite means, quats, scales and opacities go to ``nonfinite[0:4]``."""
     n = means.shape[0]
@@ -305,7 +305,7 @@ def _raise_nonfinite(names, flags) -> None:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, camera: Camera, antialiased: bool, nonfinite):
+    def forward(ctx, means, quats, scales, opacities, camera: PreparedCamera, antialiased: bool, nonfinite):
         means2d, conics, depths, out_opacities, radii = _project(
             means, quats, scales, opacities, camera, antialiased, nonfinite
         )
@@ -338,22 +338,36 @@ class _Project(torch.autograd.Function):
                 means.shape[0],
                 inputs=_project_inputs(means, quats, scales, opacities, ctx.camera, ctx.antialiased),
                 outputs=[*_project_outputs(means2d, conics, depths, out_opacities, radii), None],
-                adj_inputs=[*_project_inputs(*grads_in, Camera(), ctx.antialiased)[:4], Camera(), 0],
+                adj_inputs=[*(_arg(g, t) for g, t in zip(grads_in, _PROJECT_INPUT_TYPES)), Camera(), None, 0],
                 adj_outputs=[*_project_outputs(*grads_out, radii)[:4], None, None],
                 adjoint=True,
             )
         return (*grads_in, None, None, None)
 
 
-def _project_inputs(means, quats, scales, opacities, camera, antialiased):
+_PROJECT_INPUT_TYPES = (wp.vec3, wp.vec4, wp.vec3, wp.float32)
+
+
+def _project_inputs(means, quats, scales, opacities, camera: PreparedCamera, antialiased):
     return [
-        _arg(means, wp.vec3),
-        _arg(quats, wp.vec4),
-        _arg(scales, wp.vec3),
-        _arg(opacities, wp.float32),
-        camera,
+        *(_arg(t, dtype) for t, dtype in zip((means, quats, scales, opacities), _PROJECT_INPUT_TYPES)),
+        camera.camera,
+        _on_device(camera, means.device),
         int(antialiased),
     ]
+
+
+_NO_CAMERA: dict = {}  # device -> an empty Warp array of Camera (the kernels' "no camera on the device")
+
+
+def _on_device(camera: PreparedCamera, device: torch.device):
+    """The kernels' ``camera_on_device`` argument: the camera's device copy, or an empty array."""
+    if camera.on_device is not None:
+        return camera.on_device
+    key = str(device)
+    if key not in _NO_CAMERA:
+        _NO_CAMERA[key] = wp.empty(0, dtype=Camera, device=wp.device_from_torch(device))
+    return _NO_CAMERA[key]
 
 
 def _project_outputs(means2d, conics, depths, opacities, radii):
@@ -372,7 +386,7 @@ def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tenso
 
 class _ShColor(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, sh, sh_rest, sh_degree: int, camera_center, radii, nonfinite):
+    def forward(ctx, means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii, nonfinite):
         colors = means.new_empty(means.shape[0], 3)
         with _warp_scope(means.device):
             _launch(
@@ -383,14 +397,15 @@ class _ShColor(torch.autograd.Function):
                     _arg(sh, wp.vec3),
                     None if sh_rest is None else _arg(sh_rest, wp.vec3),
                     sh_degree,
-                    camera_center,
+                    camera.center,
+                    _on_device(camera, means.device),
                     _arg(radii, wp.vec2i),
                 ],
                 outputs=[_arg(colors, wp.vec3), _arg(nonfinite, wp.int32)],
             )
         ctx.save_for_backward(means, sh, sh_rest, radii, colors)
         ctx.sh_degree = sh_degree
-        ctx.camera_center = camera_center
+        ctx.camera = camera
         return colors
 
     @staticmethod
@@ -422,7 +437,8 @@ class _ShColor(torch.autograd.Function):
                     _arg(sh, wp.vec3),
                     rest,
                     ctx.sh_degree,
-                    ctx.camera_center,
+                    ctx.camera.center,
+                    _on_device(ctx.camera, means.device),
                     _arg(radii, wp.vec2i),
                     _arg(colors, wp.vec3),
                     _arg(grad_colors, wp.vec3),
@@ -577,6 +593,10 @@ class PreparedCamera:
             (world-to-camera rotation and translation, intrinsics, image size, near plane).
         center: the camera centre in world coordinates, -R^T t (``wp.vec3``), from which the SH
             colour's view directions start.
+        on_device: None, or a Warp array of one :class:`cdcgs.kernels.Camera` on the render's
+            device that the kernels read instead of ``camera`` and ``center``: a step replayed as
+            a CUDA graph writes its view's camera there on the device (:func:`select_camera`).
+            Every camera written there must have this one's size and near plane.
     """
 
     width: int
@@ -584,6 +604,7 @@ class PreparedCamera:
     near_plane: float
     camera: Camera
     center: wp.vec3
+    on_device: wp.array | None = None
 
 
 def prepare_camera(viewmat, K, width: int, height: int, near_plane: float = 0.01) -> PreparedCamera:
@@ -802,12 +823,10 @@ def rasterize(
             )
 
         means2d, conics, depths, composited_opacities, radii = _Project.apply(
-            means, quats, scales, opacities, prepared.camera, antialiased, nonfinite
+            means, quats, scales, opacities, prepared, antialiased, nonfinite
         )
         if sh is not None:
-            colors = _ShColor.apply(
-                means, sh, sh_rest, sh_degree, prepared.center, radii, nonfinite[len(checked) - 1 :]
-            )
+            colors = _ShColor.apply(means, sh, sh_rest, sh_degree, prepared, radii, nonfinite[len(checked) - 1 :])
 
         pending = None
         if capacity is None:
@@ -936,7 +955,7 @@ def start_bin_view(
         )
     with _warp_scope(device):
         nonfinite = torch.zeros(len(checked), dtype=torch.int32, device=device)
-        projection = _project(*checked.values(), camera.camera, antialiased, nonfinite)
+        projection = _project(*checked.values(), camera, antialiased, nonfinite)
         means2d, conics, depths, composited_opacities, radii = projection
         start = _start_bin(means2d, radii, depths, conics, composited_opacities, camera.width, camera.height)
         return PendingBins(camera, projection, start, nonfinite, list(checked))

@@ -39,6 +39,7 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
             wp.array(scales, dtype=wp.vec3, device=device),
             wp.array(opacities, dtype=float, device=device),
             camera,
+            None,  # the camera is `camera` (a trainer replaying a CUDA graph passes an array it writes)
             0,  # antialiased
         ],
         outputs=[means2d, conics, depths, composited_opacities, radii, None],  # None: no finiteness flags
@@ -50,7 +51,7 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
         sh_to_color_kernel,
         dim=n,
         # None: every coefficient in the one [N, K] array (a trainer may pass degree 0 and the rest apart)
-        inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), None, sh_degree, camera.center, radii],
+        inputs=[means_wp, wp.array(sh, dtype=wp.vec3, device=device), None, sh_degree, camera.center, None, radii],
         outputs=[colors, None],  # None: no finiteness flag
         device=device,
     )

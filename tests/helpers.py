@@ -138,3 +138,29 @@ def train_argv(scene, out, iters: int, *extra: str, device: str = DEFAULT_DEVICE
         device,
         *extra,
     ]
+
+
+# The short trainings that compare a way of stepping with the counted one (test_lookahead, test_graph).
+ITERS = 120
+
+
+def train_briefly(scene, out, strategy="3dgs", options=SHORT, **overrides):
+    """An ``ITERS``-iteration training of ``scene`` into ``out`` (random background unless
+    overridden): (the trainer, its result)."""
+    from cdcgs.train.trainer import Trainer
+
+    values = dict(iters=ITERS, log_every=25, background="random", strategy=strategy)
+    values.update(overrides)
+    trainer = Trainer(tiny_config(scene, out, **values), options)
+    return trainer, trainer.run()
+
+
+def assert_same_model(a, b) -> None:
+    """Two trainers' parameters, Adam step counts and second moments equal bit for bit."""
+    assert a.model.params.keys() == b.model.params.keys()
+    for name in a.model.params:
+        assert torch.equal(a.model.params[name], b.model.params[name]), name
+    for p, q in zip(a.optimizer.param_groups, b.optimizer.param_groups):
+        state_p, state_q = a.optimizer.state[p["params"][0]], b.optimizer.state[q["params"][0]]
+        assert float(state_p["step"]) == float(state_q["step"])
+        assert torch.equal(state_p["exp_avg_sq"], state_q["exp_avg_sq"]), p["name"]

@@ -620,3 +620,11 @@ def test_bench_rasterize_times_the_render_without_its_count_read(tmp_path, capsy
     with pytest.raises(SystemExit):  # a margin below 1 has no room for every pair
         bench_rasterize.main([*argv, "--capacity", "0.5"])
     assert "margins must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="with a GPU the script measures instead")
+def test_graph_step_says_it_needs_a_gpu():
+    import graph_step
+
+    with pytest.raises(SystemExit, match="needs a CUDA GPU"):
+        graph_step.main(["--data", "unused"])

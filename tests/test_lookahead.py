@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, SHORT, tiny_config
+from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, train_briefly
 
 import cdcgs.render
 import cdcgs.train.lookahead as lookahead
@@ -15,30 +15,11 @@ from cdcgs.render import rasterize
 from cdcgs.train.mcmc import position_noise
 from cdcgs.train.model import GaussianModel
 from cdcgs.train.optim import FusedAdam
-from cdcgs.train.trainer import Trainer
 
 CPU_ONLY = pytest.mark.skipif(
     DEFAULT_DEVICE != "cpu", reason="bit-equal runs on the CPU only: on CUDA the order of float atomic adds varies"
 )
-ITERS = 120
 MCMC_SHORT = {"refine_from": 20, "refine_until": 90, "refine_every": 20, "target_gaussians": 1900}
-
-
-def train(scene, out, strategy="3dgs", options=SHORT, **overrides):
-    values = dict(iters=ITERS, log_every=25, background="random", strategy=strategy)
-    values.update(overrides)
-    trainer = Trainer(tiny_config(scene, out, **values), options)
-    return trainer, trainer.run()
-
-
-def assert_same_model(a: Trainer, b: Trainer) -> None:
-    assert a.model.params.keys() == b.model.params.keys()
-    for name in a.model.params:
-        assert torch.equal(a.model.params[name], b.model.params[name]), name
-    for p, q in zip(a.optimizer.param_groups, b.optimizer.param_groups):
-        state_p, state_q = a.optimizer.state[p["params"][0]], b.optimizer.state[q["params"][0]]
-        assert float(state_p["step"]) == float(state_q["step"])
-        assert torch.equal(state_p["exp_avg_sq"], state_q["exp_avg_sq"]), p["name"]
 
 
 @CPU_ONLY
@@ -52,8 +33,8 @@ def assert_same_model(a: Trainer, b: Trainer) -> None:
     ids=["3dgs", "3dgs-batch-2", "mcmc"],
 )
 def test_a_sync_free_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path, strategy, options, overrides):
-    counted, _ = train(tiny_scene, tmp_path / "counted", strategy, options, **overrides)
-    free, result = train(tiny_scene, tmp_path / "free", strategy, options, sync_free=True, **overrides)
+    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", strategy, options, **overrides)
+    free, result = train_briefly(tiny_scene, tmp_path / "free", strategy, options, sync_free=True, **overrides)
     assert_same_model(counted, free)
     summary = result["sync_free"]
     views = len(free.scene.train)
@@ -70,10 +51,10 @@ def test_overflows_halt_every_update_and_are_taken_again(tiny_scene, tmp_path, m
     goes back to the iteration that overflowed: the run ends as the counted one (on CUDA, whose
     atomic sums differ from run to run, as close as two counted runs)."""
     for strategy, options in (("3dgs", SHORT), ("mcmc", MCMC_SHORT)):
-        counted, first = train(tiny_scene, tmp_path / f"{strategy}-counted", strategy, options)
+        counted, first = train_briefly(tiny_scene, tmp_path / f"{strategy}-counted", strategy, options)
         monkeypatch.setattr(lookahead, "MARGIN", 1.0)
         monkeypatch.setattr(lookahead, "FLOOR", 0)
-        free, result = train(tiny_scene, tmp_path / f"{strategy}-free", strategy, options, sync_free=True)
+        free, result = train_briefly(tiny_scene, tmp_path / f"{strategy}-free", strategy, options, sync_free=True)
         monkeypatch.undo()
         summary = result["sync_free"]
         assert summary["rewinds"] > 3 and summary["iterations_redone"] > summary["rewinds"], summary
@@ -91,7 +72,7 @@ def test_a_halt_on_a_later_view_of_a_batch_also_stops_the_earlier_views_records(
     exactly its last count's slots: every halt lands on a step's second view, after the first
     view's render. The step's guard records and densification statistics wait for its last render,
     so the halt stops them too, and the step taken again counts each view once."""
-    counted, _ = train(tiny_scene, tmp_path / "counted", batch_size=2)
+    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", batch_size=2)
     monkeypatch.setattr(lookahead, "MARGIN", 1.0)
     monkeypatch.setattr(lookahead, "FLOOR", 0)
     real, calls = lookahead.Lookahead.capacity, {"n": 0}
@@ -101,7 +82,7 @@ def test_a_halt_on_a_later_view_of_a_batch_also_stops_the_earlier_views_records(
         return None if calls["n"] % 2 else real(self, view, gaussians, scale)
 
     monkeypatch.setattr(lookahead.Lookahead, "capacity", second_views_only)
-    free, result = train(tiny_scene, tmp_path / "free", sync_free=True, batch_size=2)
+    free, result = train_briefly(tiny_scene, tmp_path / "free", sync_free=True, batch_size=2)
     assert result["sync_free"]["rewinds"] > 3, result["sync_free"]
     assert_same_model(counted, free)
     assert counted.guard.means() == free.guard.means() and counted.history["loss"] == free.history["loss"]
@@ -188,6 +169,6 @@ def test_a_halt_stops_adam_the_statistics_and_the_noise():
 
 def test_sync_free_refuses_what_a_halt_cannot_stop(tiny_scene, tmp_path):
     with pytest.raises(OptionError, match="--optimizer torch-adam cannot: use adam or selective"):
-        train(tiny_scene, tmp_path / "a", iters=2, sync_free=True, optimizer="torch-adam")
+        train_briefly(tiny_scene, tmp_path / "a", iters=2, sync_free=True, optimizer="torch-adam")
     with pytest.raises(OptionError, match="--complexity-schedule online"):
-        train(tiny_scene, tmp_path / "b", "cdc", {"complexity_schedule": "online"}, iters=2, sync_free=True)
+        train_briefly(tiny_scene, tmp_path / "b", "cdc", {"complexity_schedule": "online"}, iters=2, sync_free=True)

@@ -130,7 +130,7 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         wp.launch(
             sh_to_color_kernel,
             n,
-            inputs=[means, sh, None, degree, center, radii],
+            inputs=[means, sh, None, degree, center, None, radii],
             outputs=[colors, None],
             device=device,
         )
@@ -139,9 +139,9 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         wp.launch(
             sh_to_color_kernel,
             n,
-            inputs=[means, sh, None, degree, center, radii],
+            inputs=[means, sh, None, degree, center, None, radii],
             outputs=[colors, None],
-            adj_inputs=[*generated, None, 0, wp.vec3(), None],
+            adj_inputs=[*generated, None, 0, wp.vec3(), None, None],
             adj_outputs=[grad_colors, None],
             adjoint=True,
             device=device,
@@ -150,7 +150,7 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         wp.launch(
             sh_to_color_backward_kernel,
             n,
-            inputs=[means, sh, None, degree, center, radii, colors, grad_colors],
+            inputs=[means, sh, None, degree, center, None, radii, colors, grad_colors],
             outputs=[*written, None],
             device=device,
         )
@@ -193,7 +193,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             wp.launch(
                 sh_to_color_kernel,
                 n,
-                inputs=[means, sh, None, degree, center, radii],
+                inputs=[means, sh, None, degree, center, None, radii],
                 outputs=[colors, None],
                 device=device,
             )
@@ -206,7 +206,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             ):
                 grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grad_sh = wp.full((n, stored), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                inputs = [means, sh, None, degree, center, radii, colors, grad_colors]
+                inputs = [means, sh, None, degree, center, None, radii, colors, grad_colors]
                 wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_sh, None], device=device)
                 outputs[name] = (grads.numpy(), grad_sh.numpy())
                 if stored > 1:  # the same with the coefficients in two arrays, degree 0 apart
@@ -215,7 +215,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
                     grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                     grad_dc = wp.full((n, 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                     grad_rest = wp.full((n, stored - 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                    inputs = [means, dc, rest, degree, center, radii, colors, grad_colors]
+                    inputs = [means, dc, rest, degree, center, None, radii, colors, grad_colors]
                     wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_dc, grad_rest], device=device)
                     both = np.concatenate([grad_dc.numpy(), grad_rest.numpy()], axis=1)
                     outputs[name + " split"] = (grads.numpy(), both)
@@ -228,7 +228,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
                 wp.launch(
                     sh_to_color_staged_backward_kernel,
                     -(-n // SH_BLOCK) * SH_BLOCK,
-                    inputs=[means, dc, rest, degree, center, radii, colors, grad_colors],
+                    inputs=[means, dc, rest, degree, center, None, radii, colors, grad_colors],
                     outputs=[grads, grad_dc, grad_rest],
                     block_dim=SH_BLOCK,
                     device=device,
@@ -485,7 +485,9 @@ def test_projection_writes_every_entry_and_flags_nonfinite_inputs(device):
             wp.array(np.full((n, k) if k > 1 else n, fill, dtype=npt), dtype=dt, device=device) for dt, k, npt in specs
         ]
         arrays = [wp.array(a, dtype=dt, device=device) for a, dt in zip(inputs, (wp.vec3, wp.vec4, wp.vec3, float))]
-        wp.launch(project_gaussians_kernel, n, inputs=[*arrays, camera, 0], outputs=[*outputs, flags], device=device)
+        wp.launch(
+            project_gaussians_kernel, n, inputs=[*arrays, camera, None, 0], outputs=[*outputs, flags], device=device
+        )
         return [o.numpy() for o in outputs]
 
     zero_filled = project((means, quats, scales, opacities), 0)

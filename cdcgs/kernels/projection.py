@@ -127,6 +127,7 @@ def project_gaussians_kernel(
     gauss_scales: wp.array(dtype=wp.vec3),
     gauss_opacities: wp.array(dtype=float),
     camera: Camera,
+    camera_on_device: wp.array(dtype=Camera),
     antialiased: int,
     means2d_out: wp.array(dtype=wp.vec2),
     conics_out: wp.array(dtype=wp.vec3),
@@ -142,8 +143,15 @@ def project_gaussians_kernel(
     quaternion (1), scales (2) or opacity (3) hold a NaN or an infinity, so validating them costs no
     read of their own; a shorter array's last entry takes the inputs beyond it (an int32 [1]:
     "some input is non-finite").
+
+    The camera is ``camera``, or with a non-empty ``camera_on_device`` that array's entry 0, which
+    a kernel may write between launches (a step replayed as a CUDA graph picks its view on the
+    device; every camera it holds must have ``camera``'s image size).
     """
     i = wp.tid()
+    cam = camera
+    if camera_on_device.shape[0] > 0:
+        cam = camera_on_device[0]
     flags = nonfinite_out.shape[0]
     if flags > 0:
         # every writer writes 1: no atomics needed
@@ -155,8 +163,8 @@ def project_gaussians_kernel(
             nonfinite_out[wp.min(2, flags - 1)] = 1
         if not wp.isfinite(gauss_opacities[i]):
             nonfinite_out[wp.min(3, flags - 1)] = 1
-    p = camera.rotation * gauss_means[i] + camera.translation
-    if p[2] < camera.near:
+    p = cam.rotation * gauss_means[i] + cam.translation
+    if p[2] < cam.near:
         write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
         return
 
@@ -164,24 +172,24 @@ def project_gaussians_kernel(
     s = gauss_scales[i]
     m = rotation * wp.diag(s)
     cov_world = m * wp.transpose(m)
-    cov_cam = camera.rotation * cov_world * wp.transpose(camera.rotation)
+    cov_cam = cam.rotation * cov_world * wp.transpose(cam.rotation)
 
     # Perspective Jacobian at a point clamped to 1.3x the field of view (keeps off-screen
     # Gaussians from exploding); the mean itself is projected unclamped.
     inv_z = 1.0 / p[2]
-    lim_left = FRUSTUM_CLAMP * camera.cx / camera.fx
-    lim_right = FRUSTUM_CLAMP * (float(camera.width) - camera.cx) / camera.fx
-    lim_top = FRUSTUM_CLAMP * camera.cy / camera.fy
-    lim_bottom = FRUSTUM_CLAMP * (float(camera.height) - camera.cy) / camera.fy
+    lim_left = FRUSTUM_CLAMP * cam.cx / cam.fx
+    lim_right = FRUSTUM_CLAMP * (float(cam.width) - cam.cx) / cam.fx
+    lim_top = FRUSTUM_CLAMP * cam.cy / cam.fy
+    lim_bottom = FRUSTUM_CLAMP * (float(cam.height) - cam.cy) / cam.fy
     tx = wp.clamp(p[0] * inv_z, -lim_left, lim_right) * p[2]
     ty = wp.clamp(p[1] * inv_z, -lim_top, lim_bottom) * p[2]
     jac = mat23(
-        camera.fx * inv_z,
+        cam.fx * inv_z,
         0.0,
-        -camera.fx * tx * inv_z * inv_z,
+        -cam.fx * tx * inv_z * inv_z,
         0.0,
-        camera.fy * inv_z,
-        -camera.fy * ty * inv_z * inv_z,
+        cam.fy * inv_z,
+        -cam.fy * ty * inv_z * inv_z,
     )
     cov2d = jac * cov_cam * wp.transpose(jac)
 
@@ -215,12 +223,12 @@ def project_gaussians_kernel(
     extent = wp.sqrt(2.0 * wp.log(opacity * 255.0))
     radius_x = wp.min(extent * wp.sqrt(a), MAX_RADIUS)
     radius_y = wp.min(extent * wp.sqrt(c), MAX_RADIUS)
-    mean2d = wp.vec2(camera.fx * p[0] * inv_z + camera.cx, camera.fy * p[1] * inv_z + camera.cy)
+    mean2d = wp.vec2(cam.fx * p[0] * inv_z + cam.cx, cam.fy * p[1] * inv_z + cam.cy)
     if (
         mean2d[0] + radius_x <= 0.0
-        or mean2d[0] - radius_x >= float(camera.width)
+        or mean2d[0] - radius_x >= float(cam.width)
         or mean2d[1] + radius_y <= 0.0
-        or mean2d[1] - radius_y >= float(camera.height)
+        or mean2d[1] - radius_y >= float(cam.height)
     ):
         write_culled(i, means2d_out, conics_out, depths_out, opacities_out, radii_out)
         return
@@ -268,6 +276,7 @@ def sh_to_color_kernel(
     gauss_sh_rest: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
+    camera_on_device: wp.array(dtype=Camera),
     radii: wp.array(dtype=wp.vec2i),
     colors_out: wp.array(dtype=wp.vec3),
     nonfinite_out: wp.array(dtype=wp.int32),
@@ -284,13 +293,16 @@ def sh_to_color_kernel(
     0 * inf are NaN), so validating ``sh`` costs no read beyond the colouring's own.
     """
     i = wp.tid()
+    center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
+    if camera_on_device.shape[0] > 0:
+        center = camera_on_device[0].center
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:
             colors_out[i] = wp.vec3(0.0, 0.0, 0.0)
             return
     color = SH_C0 * sh_coefficient(gauss_sh, gauss_sh_rest, i, 0)
     if sh_degree > 0:
-        d = wp.normalize(gauss_means[i] - camera_center)
+        d = wp.normalize(gauss_means[i] - center)
         x = d[0]
         y = d[1]
         z = d[2]
@@ -446,6 +458,7 @@ def sh_to_color_backward_kernel(
     gauss_sh_rest: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
+    camera_on_device: wp.array(dtype=Camera),
     radii: wp.array(dtype=wp.vec2i),
     colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
@@ -458,6 +471,9 @@ def sh_to_color_backward_kernel(
     get 0), no atomics. ``colors`` is the forward output: colour = max(raw, 0) passes the gradient
     where it is positive."""
     i = wp.tid()
+    center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
+    if camera_on_device.shape[0] > 0:
+        center = camera_on_device[0].center
     stored = sh_stored(gauss_sh, gauss_sh_rest)
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:
@@ -465,7 +481,7 @@ def sh_to_color_backward_kernel(
                 store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
             grad_means_out[i] = wp.vec3(0.0, 0.0, 0.0)
             return
-    v = gauss_means[i] - camera_center
+    v = gauss_means[i] - center
     d = wp.normalize(v)
     basis = sh_basis(d, sh_degree)
     count = (sh_degree + 1) * (sh_degree + 1)
@@ -509,6 +525,7 @@ def sh_to_color_grouped_backward_kernel(
     gauss_sh_rest: wp.array2d(dtype=wp.vec3),
     sh_degree: int,
     camera_center: wp.vec3,
+    camera_on_device: wp.array(dtype=Camera),
     radii: wp.array(dtype=wp.vec2i),
     colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
@@ -518,6 +535,9 @@ def sh_to_color_grouped_backward_kernel(
 ):
     """``sh_to_color_backward_kernel`` with one thread per coefficient (dim MAX_SH_COEFFICIENTS * N = 16 N, CUDA only)."""
     t = wp.tid()
+    center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
+    if camera_on_device.shape[0] > 0:
+        center = camera_on_device[0].center
     i = t // MAX_SH_COEFFICIENTS
     j = t - i * MAX_SH_COEFFICIENTS
     stored = sh_stored(gauss_sh, gauss_sh_rest)
@@ -530,7 +550,7 @@ def sh_to_color_grouped_backward_kernel(
                 grad_means_out[i] = zero
             return
     count = (sh_degree + 1) * (sh_degree + 1)
-    v = gauss_means[i] - camera_center
+    v = gauss_means[i] - center
     d = wp.normalize(v)
     b = pick_sh(sh_basis(d, sh_degree), j)
     coefficient = zero
@@ -608,6 +628,7 @@ def sh_to_color_staged_backward_kernel(
     gauss_sh_rest: wp.array(dtype=float),
     sh_degree: int,
     camera_center: wp.vec3,
+    camera_on_device: wp.array(dtype=Camera),
     radii: wp.array(dtype=wp.vec2i),
     colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
@@ -620,6 +641,9 @@ def sh_to_color_staged_backward_kernel(
     multiple of SH_BLOCK and block_dim exactly SH_BLOCK: a thread's slot is its id modulo SH_BLOCK,
     so a larger block would put two threads on one slot."""
     t = wp.tid()
+    center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
+    if camera_on_device.shape[0] > 0:
+        center = camera_on_device[0].center
     lane = t % SH_BLOCK
     n = gauss_means.shape[0]
     row = gauss_sh_rest.shape[0] // wp.max(n, 1)  # floats per Gaussian: 3 (K - 1)
@@ -642,7 +666,7 @@ def sh_to_color_staged_backward_kernel(
                 sh_stage(SH_STAGE_STORE, own + k, 0.0)
             grad_means_out[t] = zero
         else:
-            v = gauss_means[t] - camera_center
+            v = gauss_means[t] - center
             d = wp.normalize(v)
             basis = sh_basis(d, sh_degree)
             count = (sh_degree + 1) * (sh_degree + 1)

@@ -332,6 +332,13 @@ class CDC(Consistency, ADC):
             self.accumulate_complexity(ctx, state)
         super().observe(ctx, state)
 
+    def graph_signature(self, step: int):
+        """As ADC's; the online schedule adds each render to Γ with torch operations that read the
+        view's complexity map by its index on the host: never captured."""
+        if self.needs_complexity and self.complexity_schedule == "online":
+            return None
+        return super().graph_signature(step)
+
     def densify_and_prune(self, ctx: StepContext, state: dict) -> dict:
         model = ctx.model
         log = {}

@@ -89,18 +89,28 @@ class Lookahead:
         self._known[view] = (count, gaussians, scale)
         self.renders["counted"] += 1
 
-    def note(self, info, step: int, view: int, gaussians: int, scale: int = 1) -> None:
+    def note(
+        self, info, step: int, view: int, gaussians: int, scale: int = 1, where: torch.Tensor | None = None
+    ) -> None:
         """After a render with a capacity (``info`` its RasterizeInfo) of ``view`` at iteration
-        ``step``: its count and flags, kept on the device (one launch)."""
-        self._noted[view] = (gaussians, scale)
-        self.renders["within"] += 1
+        ``step``: its count and flags, kept on the device (one launch). ``where``: an int32 device
+        tensor that holds (iteration, view) when the launch runs (a captured step's); the host's
+        ``step`` and ``view`` then only say what was rendered (:meth:`replayed`)."""
+        if where is None:
+            self.replayed(view, gaussians, scale)
+        no_where = torch.empty(0, dtype=torch.int32, device=self.device) if where is None else where
         with warp_scope(self.device):
             launch(
                 note_render_kernel,
                 1,
-                inputs=[wp_arg(info.pending, wp.int32), int(step), int(view)],
+                inputs=[wp_arg(info.pending, wp.int32), int(step), int(view), wp_arg(no_where, wp.int32)],
                 outputs=[wp_arg(self.halt, wp.int32), wp_arg(self._first, wp.int32), wp_arg(self._counts, wp.int32)],
             )
+
+    def replayed(self, view: int, gaussians: int, scale: int = 1) -> None:
+        """A render of ``view`` with a capacity whose note runs on the device (a replayed step)."""
+        self._noted[view] = (gaussians, scale)
+        self.renders["within"] += 1
 
     def read(self) -> Halted | None:
         """One host synchronisation: the counts of the views rendered since the last read, and the

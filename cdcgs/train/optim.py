@@ -59,51 +59,69 @@ class FusedAdam(torch.optim.Optimizer):
                 state["step"] = torch.zeros((), dtype=torch.float32)
                 state["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
                 state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-            if state["step"].device.type != "cpu":  # torch's fused Adam keeps it on the device: once
-                state["step"] = state["step"].cpu()
-            state["step"] += 1
-            t = float(state["step"])
-            beta1, beta2 = group["betas"]
+            rates = _advance(group, state)
             grad = p.grad.contiguous()
             held.append(grad)
             rows = p.shape[0] if p.dim() else 1
-            beta1, beta2 = float(beta1), float(beta2)
-            rates = [
-                float(group["lr"]),
-                beta1,
-                beta2,
-                1.0 - beta1,  # in double precision, as torch passes it
-                1.0 - beta2,
-                float(group["eps"]),
-                1.0 - beta1**t,
-                math.sqrt(1.0 - beta2**t),
-            ]
             addresses = [x.data_ptr() for x in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
             parameters.append((addresses, p.numel(), p.numel() // rows if rows else 1, rates))
-        if selected is None:
-            mask = torch.empty(0, dtype=torch.uint8, device=device)
-        else:
-            mask = selected.to(device).contiguous().view(torch.uint8)
         for batch in _launches(parameters):
             table, start = [], 0
             for addresses, count, width, _ in batch:
                 table.append([*addresses, start, count, width])
                 start += count
             tables = [_on(device, table, torch.int64), _on(device, [entry[3] for entry in batch], torch.float32)]
-            with warp_scope(device):
-                launch(
-                    fused_adam_kernel,
-                    start,
-                    inputs=[
-                        wp_arg(tables[0], wp.int64),
-                        wp_arg(tables[1], wp.float32),
-                        wp_arg(mask, wp.uint8),
-                        halt_arg(halt, device),
-                    ],
-                )
+            launch_adam(tables[0], tables[1], start, selected, halt)
         for _, p in updated:  # the kernel wrote through addresses: tell torch, as an in-place op would
             increment_version(p)
         return loss
+
+    def advance(self, params: list[torch.Tensor]) -> list[list[float]]:
+        """What ``step()`` does on the host for ``params`` (each with its Adam state), for a step
+        that launches Adam itself (a captured one, :mod:`cdcgs.train.graph`): their step counts
+        advanced, and their rows of ``fused_adam_kernel``'s rates table."""
+        group_of = {id(p): group for group in self.param_groups for p in group["params"]}
+        return [_advance(group_of[id(p)], self.state[p]) for p in params]
+
+
+def launch_adam(
+    table: torch.Tensor, rates: torch.Tensor, total: int, selected: torch.Tensor | None, halt: torch.Tensor | None
+) -> None:
+    """One launch of ``fused_adam_kernel`` over ``total`` values with its two tables (device
+    tensors: int64 [P, 7] and float32 [P, 8]), on the rows where ``selected`` (bool [N]) is True or
+    every row, while ``halt`` is clear."""
+    device = table.device
+    if selected is None:
+        mask = torch.empty(0, dtype=torch.uint8, device=device)
+    else:
+        mask = selected.to(device).contiguous().view(torch.uint8)
+    with warp_scope(device):
+        launch(
+            fused_adam_kernel,
+            total,
+            inputs=[wp_arg(table, wp.int64), wp_arg(rates, wp.float32), wp_arg(mask, wp.uint8), halt_arg(halt, device)],
+        )
+
+
+def _advance(group: dict, state: dict) -> list[float]:
+    """Advance one parameter's step count; its row of the rates table (lr, beta1, beta2, 1 - beta1,
+    1 - beta2, eps and the two bias corrections of the new count, in double precision as torch
+    computes them)."""
+    if state["step"].device.type != "cpu":  # torch's fused Adam keeps it on the device: once
+        state["step"] = state["step"].cpu()
+    state["step"] += 1
+    t = float(state["step"])
+    beta1, beta2 = (float(b) for b in group["betas"])
+    return [
+        float(group["lr"]),
+        beta1,
+        beta2,
+        1.0 - beta1,  # in double precision, as torch passes it
+        1.0 - beta2,
+        float(group["eps"]),
+        1.0 - beta1**t,
+        math.sqrt(1.0 - beta2**t),
+    ]
 
 
 # The name of ``--optimizer selective``'s optimizer before Adam and selective Adam became one class.

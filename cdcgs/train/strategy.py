@@ -325,6 +325,13 @@ class ADC(StrategyOptions):
     def after_step(self, ctx: StepContext, state: dict) -> None:
         pass
 
+    def graph_signature(self, step: int):
+        """What a captured step (``--cuda-graph``) of iteration ``step`` depends on in this
+        strategy's hooks: steps with equal signatures replay one graph. Here, whether the step adds
+        to the densification statistics (its hooks do nothing else, and nothing random); None
+        would mean "take this step one operation at a time"."""
+        return self.accumulates_at(step)
+
     # --- the schedule (iterations from 1; every test strict, as in the INRIA code) --------------
 
     def accumulates_at(self, step: int) -> bool:

@@ -25,6 +25,7 @@ from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
 from .evaluate import evaluate, lpips_metric
+from .graph import GraphSteps
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
 from .lookahead import READ_EVERY, Lookahead
@@ -218,6 +219,7 @@ class Trainer:
         self._reduce_bytes = 0
         self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
         self.lookahead: Lookahead | None = None  # --sync-free
+        self.graphs: GraphSteps | None = None  # --cuda-graph
         self._snapshots: dict[int, dict] = {}  # --sync-free: iteration -> what the host needs to take it again
 
     # ----------------------------------------------------------------------------- set-up
@@ -324,7 +326,9 @@ class Trainer:
         self.lpips = lpips_metric(self.device)
         kinds = self.strategy.statistics()
         self.statistics = StatisticsSync(self.ranks, kinds) if self.ranks.distributed else None
-        self.lookahead = Lookahead(self.device, len(self.scene.train)) if config.sync_free else None
+        sync_free = config.sync_free or config.cuda_graph
+        self.lookahead = Lookahead(self.device, len(self.scene.train)) if sync_free else None
+        self.graphs = GraphSteps(self) if config.cuda_graph else None
         config_json = {
             "train": config_to_dict(config),
             "processes": self.ranks.world,
@@ -335,17 +339,18 @@ class Trainer:
 
     def _check_sync_free(self) -> None:
         config = self.config
-        if not config.sync_free:
+        if not (config.sync_free or config.cuda_graph):
             return
+        name = "--cuda-graph" if config.cuda_graph else "--sync-free"
         if self.ranks.distributed:
-            raise OptionError("--sync-free trains on one process: drop it for a torchrun launch of several")
+            raise OptionError(f"{name} trains on one process: drop it for a torchrun launch of several")
         if config.optimizer not in ("adam", "selective"):
             raise OptionError(
-                f"--sync-free halts Adam on the device, which --optimizer {config.optimizer} cannot: use adam or selective"
+                f"{name} halts Adam on the device, which --optimizer {config.optimizer} cannot: use adam or selective"
             )
         if getattr(self.strategy, "complexity_schedule", None) == "online" and self.strategy.needs_complexity:
             raise OptionError(
-                "--sync-free cannot be combined with --complexity-schedule online, which adds every render to Γ "
+                f"{name} cannot be combined with --complexity-schedule online, which adds every render to Γ "
                 "with torch operations that a halt does not stop (use the full schedule)"
             )
 
@@ -607,6 +612,11 @@ class Trainer:
         views = [self._next_view() for _ in range(count)]
         self.generator.manual_seed(step_seed(config.seed, first))
         backgrounds = [self._step_background() for _ in range(count)]
+        if self.graphs is not None and count == 1 and self.graphs.take(first, views[0], backgrounds[0]):
+            self.step = last
+            self.step_events = []
+            self.strategy.after_step(self._context(last), self.strategy_state)
+            return {}
         if self.statistics is not None:
             self.statistics.begin(self.strategy_state)
         visible = None
@@ -738,7 +748,6 @@ class Trainer:
         statistics, which the step records after its last render. A render that meets NaN
         parameters stops a single process at once; on several, it returns None and the processes
         stop together at the next check (:meth:`check_numbers`)."""
-        config = self.config
         view = self.scene.train[view_index]
         scale = self._downscale(iteration)
         lookahead = self.lookahead
@@ -759,13 +768,7 @@ class Trainer:
         elif lookahead is not None:
             lookahead.note(info, iteration, view_index, self.model.num, scale)
         photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
-        if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
-            loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
-            image_psnr = mse_to_psnr(mse)
-        else:
-            target = photo.float() / 255.0
-            loss = photometric_loss(image, target, config.ssim_weight)
-            image_psnr = psnr(image.detach(), target)
+        loss, image_psnr = self._loss(image, photo)
         ctx = self._context(iteration, info, view_index)
         self.strategy.before_backward(ctx, self.strategy_state)
         regularizer = self.strategy.regularizer(ctx)
@@ -773,6 +776,15 @@ class Trainer:
             loss = loss + regularizer
         loss.backward()  # each view's full gradient; _reduce averages them
         return loss, image_psnr, ctx
+
+    def _loss(self, image: torch.Tensor, photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the photometric loss of a render against its uint8 photo, the render's PSNR)."""
+        config = self.config
+        if config.fused_loss:  # the photo stays uint8 on the device; the kernels read it as such
+            loss, mse = fused_photometric_loss(image, photo, config.ssim_weight)
+            return loss, mse_to_psnr(mse)
+        target = photo.float() / 255.0
+        return photometric_loss(image, target, config.ssim_weight), psnr(image.detach(), target)
 
     def _reduce(self, count: int, visible: torch.Tensor | None, timed: bool) -> None:
         """Average the step's gradients over its ``count`` views (on several processes: one flat
@@ -1058,6 +1070,8 @@ class Trainer:
         }
         if self.lookahead is not None:
             result["sync_free"] = self.lookahead.summary()
+        if self.graphs is not None:
+            result["cuda_graph"] = self.graphs.summary()
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
             summaries = self.ranks.all_gather_object(self._communication_summary())

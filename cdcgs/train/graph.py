@@ -1,0 +1,268 @@
+"""Training steps replayed as one CUDA graph (``--cuda-graph``).
+
+A step's host work (Python, torch's autograd, some sixty launches) takes about as long as its
+kernels below a million Gaussians, so the GPU waits for the host. With ``--cuda-graph`` the step
+of one view (render into slots, the note of its count, the loss, the backward pass, the guard's
+record, the strategy's statistics, one Adam launch) is captured once under ``torch.cuda.graph``,
+Warp told of the capture, and replayed: per step the host only picks the view and computes Adam's
+rates, writes them into pinned memory and queues two small copies and the replay.
+
+What a captured step reads that changes from step to step lives on the device:
+
+- ``where`` (int32 [2]): the iteration and the view, copied from the host before each replay; a
+  kernel (:data:`cdcgs.kernels._lookahead.select_camera_kernel`) copies that view's camera into a
+  one-camera array that the projection and SH kernels read
+  (:attr:`cdcgs.render.PreparedCamera.on_device`), and the photo is picked from the stacked
+  training photos by the same index;
+- the Adam rates table (float32 [P, 8]), copied from the host each step (the host advances Adam's
+  step counts and the position learning rate as ``FusedAdam.step`` does);
+- the slots: one capacity for every view, the largest any view needs
+  (:meth:`cdcgs.train.lookahead.Lookahead.capacity`); a view that needs more is captured again.
+
+What does not change between two refinements is fixed in the graph: the Gaussians' tensors, the SH
+degree, the render size and whether the step adds densification statistics (the strategy's
+:meth:`graph_signature`). When one of them changes the next step captures a new graph. Steps that
+refine, views whose count is not known yet and strategies without a signature run as before.
+
+The halts of ``--sync-free`` work unchanged: a replayed render notes its count and flags on the
+device, and every kernel that changes the training's state reads ``halt``. On the CPU nothing is
+captured: the same step runs one operation at a time, and equals the step without ``--cuda-graph``
+bit for bit (``tests/test_graph.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+import warp as wp
+from torch.autograd.graph import increment_version
+
+from .._interop import launch, warp_scope, wp_arg
+from ..errors import OptionError
+from ..kernels._lookahead import select_camera_kernel
+from ..kernels.projection import Camera
+from ..render import rasterize
+from .lookahead import READ_EVERY
+from .optim import MAX_LAUNCH_VALUES, FusedAdam, launch_adam
+
+__all__ = ["GraphSteps"]
+
+# Host slots of the per-step copies: the host writes slot (iteration % RING) and queues a copy
+# from it; a read of the device (at least every READ_EVERY iterations) waits for every copy, so
+# a slot is never rewritten before its copy has run.
+RING = 256
+assert READ_EVERY < RING
+
+
+class GraphSteps:
+    """The captured step of one trainer (:class:`cdcgs.train.trainer.Trainer`), and when to take it."""
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        config = trainer.config
+        self.device = trainer.device
+        self.cuda = self.device.type == "cuda"
+        if self.cuda and self.device.index is None:  # "cuda": Warp needs the ordinal
+            self.device = torch.device("cuda", torch.cuda.current_device())
+        if config.batch_size != 1:
+            raise OptionError(f"--cuda-graph captures a step of one view: drop --batch-size {config.batch_size}")
+        if config.background == "random":
+            raise OptionError("--cuda-graph needs a fixed background: --background random draws one each step")
+        if config.optimizer not in ("adam", "selective"):
+            raise OptionError("--cuda-graph launches FusedAdam itself: use --optimizer adam or selective")
+        if getattr(trainer.strategy, "graph_signature", None) is None:
+            raise OptionError(
+                f"--cuda-graph: the {config.strategy} strategy's hooks draw random numbers or read the device on "
+                "the host each step; drop --cuda-graph for it"
+            )
+        if not isinstance(trainer.optimizer, FusedAdam):
+            raise OptionError("--cuda-graph launches FusedAdam itself: use --optimizer adam or selective")
+        sizes = {(c.width, c.height, c.near_plane) for c in trainer.cameras}
+        if len(sizes) != 1:
+            raise OptionError(
+                f"--cuda-graph renders every training view into one image size, and these have {len(sizes)} sizes"
+            )
+        pinned = self.cuda
+        self.where = torch.zeros(2, dtype=torch.int32, device=self.device)
+        self._where_ring = torch.zeros(RING, 2, dtype=torch.int32, pin_memory=pinned)
+        self._where_slots = self._where_ring.numpy()
+        self._rates_ring: torch.Tensor | None = None
+        self._tables: dict[int, tuple] = {}  # scale -> (cameras on the device, camera of the step, stacked photos)
+        self.graph = None
+        self.key = None
+        self.capacity = 0
+        self.captures = 0
+        self.replays = 0
+        self._table = self._rates = self._grads = None
+
+    # ----------------------------------------------------------------------------- when
+
+    def key_of(self, iteration: int, scale: int):
+        """What the graph of ``iteration``'s step is fixed to, or None: take it as before."""
+        trainer = self.trainer
+        signature = trainer.strategy.graph_signature(iteration)
+        if signature is None or trainer.strategy.refines_at(iteration):
+            return None
+        if sum(p.numel() for p in trainer.model.params.values()) > MAX_LAUNCH_VALUES:
+            return None  # Adam would need several launches (FusedAdam.step splits them)
+        # the addresses the graph and Adam's table hold: a refinement or a reset replaces tensors
+        optimizer = trainer.optimizer
+        addresses = []
+        for group in optimizer.param_groups:
+            for p in group["params"]:
+                state = optimizer.state.get(p, {})
+                if "exp_avg" not in state:
+                    return None  # Adam's first step makes them
+                addresses += [p.data_ptr(), state["exp_avg"].data_ptr(), state["exp_avg_sq"].data_ptr()]
+        return (signature, trainer.model.sh_degree, scale, trainer.model.num, tuple(addresses))
+
+    def take(self, iteration: int, view: int, background: torch.Tensor) -> bool:
+        """Take ``iteration`` (one view, ``view``) as a replayed step and return True, or return
+        False: the trainer takes it as before."""
+        trainer = self.trainer
+        scale = trainer._downscale(iteration)
+        key = self.key_of(iteration, scale)
+        if key != self.key:
+            self.release()  # before the refinement or the capture that comes next: not both in memory
+        if key is None:
+            return False
+        lookahead = trainer.lookahead
+        needed = lookahead.capacity(view, trainer.model.num, scale)
+        if needed is None:
+            return False  # its first render at this scale reads the count
+        if key != self.key or needed > self.capacity:
+            self._capture(key, scale, background)
+        slot = iteration % RING
+        self._where_slots[slot] = (iteration, view)
+        self._rates_slots[slot] = trainer.optimizer.advance(self._params)
+        self.where.copy_(self._where_ring[slot], non_blocking=True)
+        self._rates.copy_(self._rates_ring[slot], non_blocking=True)
+        lookahead.replayed(view, trainer.model.num, scale)
+        if self.cuda:
+            self.graph.replay()
+        else:
+            self._body()
+        for p in self._params:  # Adam wrote through addresses: tell torch, as an in-place op would
+            increment_version(p)
+        self.replays += 1
+        return True
+
+    # ------------------------------------------------------------------------- capture
+
+    def _capture(self, key, scale: int, background: torch.Tensor) -> None:
+        """Capture the step for ``key`` with slots for every view known at this scale."""
+        trainer = self.trainer
+        lookahead = trainer.lookahead
+        known = [lookahead.capacity(v, trainer.model.num, scale) for v in range(len(trainer.scene.train))]
+        self.release()  # the old graph's memory goes back before the new one takes its own
+        capacity = max(c for c in known if c is not None)
+        self.capacity = capacity
+        self._params = [p for group in trainer.optimizer.param_groups for p in group["params"]]
+        count = len(self._params)
+        self._rates = torch.zeros(count, 8, dtype=torch.float32, device=self.device)
+        self._rates_ring = torch.zeros(RING, count, 8, dtype=torch.float32, pin_memory=self.cuda)
+        self._rates_slots = self._rates_ring.numpy()
+        self._table = torch.zeros(count, 7, dtype=torch.int64, device=self.device)
+        self._background = background
+        self._scale = scale
+        self.captures += 1
+        trainer.optimizer.zero_grad(set_to_none=True)
+        self._tables_at(scale)  # Warp allocates them: not inside the capture
+        if not self.cuda:
+            self.key = key
+            return
+        graph = torch.cuda.CUDAGraph()
+        # thread_local: another thread's CUDA calls (the viewer's renders) do not break the capture
+        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+            stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
+            wp.capture_begin(stream=stream, external=True)
+            try:
+                self._body()
+            finally:
+                wp.capture_end(stream=stream)
+        self._grads = [p.grad for p in self._params]  # the graph's own memory: the table names it
+        missing = [name for name, p in trainer.model.params.items() if p.grad is None]
+        if missing:
+            raise RuntimeError(f"a captured step left {', '.join(missing)} without a gradient")
+        self._fill_table()
+        trainer.optimizer.zero_grad(set_to_none=True)
+        self.graph, self.key = graph, key  # only a capture that succeeded is replayed
+
+    def _tables_at(self, scale: int):
+        """(every training view's camera on the device, the one-camera array the kernels read, the
+        prepared camera that names it, the training photos stacked) at 1/``scale`` of their size."""
+        if scale not in self._tables:
+            trainer = self.trainer
+            views = range(len(trainer.scene.train))
+            pairs = [
+                (trainer.cameras[v], trainer.scene.train[v].image) if scale == 1 else trainer._scaled_view(v, scale)
+                for v in views
+            ]
+            cameras = wp.array([c.camera for c, _ in pairs], dtype=Camera, device=wp.device_from_torch(self.device))
+            current = wp.empty(1, dtype=Camera, device=cameras.device)
+            prepared = dataclasses.replace(pairs[0][0], on_device=current)
+            photos = torch.stack([photo for _, photo in pairs])
+            if scale == 1:  # the views keep their photos in the stack: no second copy
+                for view, photo in zip(trainer.scene.train, photos):
+                    view.image = photo
+            self._tables = {scale: (cameras, current, prepared, photos)}  # one scale at a time
+        return self._tables[scale]
+
+    def _body(self) -> None:
+        """The step's device work, from ``where`` and the rates table; reads nothing back."""
+        trainer = self.trainer
+        config = trainer.config
+        cameras, current, prepared, photos = self._tables_at(self._scale)
+        with warp_scope(self.device):
+            launch(select_camera_kernel, 1, inputs=[cameras, wp_arg(self.where, wp.int32)], outputs=[current])
+        image, _, info = rasterize(
+            **trainer.model.render_args(),
+            camera=prepared,
+            background=self._background,
+            antialiased=config.antialiased,
+            capacity=self.capacity,
+        )
+        lookahead = trainer.lookahead
+        lookahead.note(info, 0, 0, trainer.model.num, self._scale, where=self.where)  # take() records the view
+        photo = photos.index_select(0, self.where[1:]).squeeze(0)
+        loss, image_psnr = trainer._loss(image, photo)
+        iteration = trainer.step + 1  # the signature's: every step of the graph shares what the hooks read of it
+        ctx = trainer._context(iteration, info, None)
+        trainer.strategy.before_backward(ctx, trainer.strategy_state)
+        if trainer.strategy.regularizer(ctx) is not None:
+            raise RuntimeError(
+                f"the {config.strategy} strategy adds a regulariser, which --cuda-graph does not capture"
+            )
+        loss.backward()
+        trainer.guard.record(loss, image_psnr, lookahead.halt)
+        trainer.strategy.observe(ctx, trainer.strategy_state)
+        visible = info.visible if config.optimizer == "selective" else None
+        total = sum(p.numel() for p in self._params)
+        if not self.cuda:  # one operation at a time: this step's gradients
+            self._grads = [p.grad for p in self._params]
+            self._fill_table()
+        launch_adam(self._table, self._rates, total, visible, lookahead.halt)
+        if not self.cuda:
+            trainer.optimizer.zero_grad(set_to_none=True)
+            self._grads = None
+
+    def _fill_table(self) -> None:
+        """Adam's address table: each parameter, its gradient (the graph's), its two moments."""
+        rows, start = [], 0
+        optimizer = self.trainer.optimizer
+        for p, grad in zip(self._params, self._grads):
+            state = optimizer.state[p]
+            addresses = [x.data_ptr() for x in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
+            rows.append([*addresses, start, p.numel(), p.numel() // p.shape[0]])
+            start += p.numel()
+        self._table.copy_(torch.tensor(rows, dtype=torch.int64))
+
+    def release(self) -> None:
+        """Let go of the graph, its memory (the gradients in its pool) and the tensors it names."""
+        self.graph = self.key = None
+        self._grads = self._params = self._table = None
+        self.capacity = 0
+
+    def summary(self) -> dict:
+        return {"captures": self.captures, "replayed_steps": self.replays}

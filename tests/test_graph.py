@@ -1,0 +1,147 @@
+"""``--cuda-graph``: the step of one view replayed as one CUDA graph, with the view, the iteration
+and Adam's rates read from the device. On the CPU the same step runs one operation at a time and
+must give the training without it bit for bit; on CUDA the replayed training must stay as close to
+the counted one as two counted runs are."""
+
+import pytest
+import torch
+from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, tiny_config, train_briefly
+
+import cdcgs.train.lookahead as lookahead
+from cdcgs.errors import OptionError
+from cdcgs.render import prepare_camera, rasterize
+from cdcgs.train.trainer import Trainer
+
+CPU_ONLY = pytest.mark.skipif(
+    DEFAULT_DEVICE != "cpu", reason="bit-equal runs on the CPU only: on CUDA the order of float atomic adds varies"
+)
+
+
+@CPU_ONLY
+@pytest.mark.parametrize(
+    "strategy, overrides",
+    [("3dgs", {}), ("absgs", {"optimizer": "selective"}), ("fast", {}), ("cdc", {})],
+    ids=["3dgs", "absgs-selective", "fast", "cdc"],
+)
+def test_a_graph_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path, strategy, overrides):
+    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", strategy, SHORT, background="white", **overrides)
+    graphed, result = train_briefly(
+        tiny_scene, tmp_path / "graph", strategy, SHORT, background="white", cuda_graph=True, **overrides
+    )
+    assert_same_model(counted, graphed)
+    assert counted.guard.means() == graphed.guard.means()
+    summary = result["cuda_graph"]
+    views = len(graphed.scene.train)
+    # The first render of each view reads its count and refinement steps run as before: the rest replay.
+    refining = sum(graphed.strategy.refines_at(i) for i in range(1, ITERS + 1))
+    assert 0 < summary["replayed_steps"] <= ITERS - views - refining + 1
+    assert summary["captures"] >= 2  # a refinement replaces the Gaussians: a new capture
+
+
+@CPU_ONLY
+def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monkeypatch):
+    """Slots of exactly the largest last count: views overflow inside replayed steps, halt, and the
+    steps are taken again after the read; the run ends as the counted one."""
+    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", "3dgs", SHORT, background="white")
+    monkeypatch.setattr(lookahead, "MARGIN", 1.0)
+    monkeypatch.setattr(lookahead, "FLOOR", 0)
+    graphed, result = train_briefly(tiny_scene, tmp_path / "graph", "3dgs", SHORT, background="white", cuda_graph=True)
+    monkeypatch.undo()
+    assert_same_model(counted, graphed)
+    assert result["sync_free"]["rewinds"] > 0, result["sync_free"]
+
+
+def test_the_kernels_read_the_camera_on_the_device(tiny_scene, device):
+    """A PreparedCamera whose ``on_device`` holds another view's camera renders that view, image
+    and gradients, as the view's own camera does."""
+    import dataclasses
+
+    import warp as wp
+
+    from cdcgs.kernels.projection import Camera
+
+    views = tiny_scene_views(tiny_scene)
+    a, b = (prepare_camera(v.viewmat, v.K, v.width, v.height) for v in views[:2])
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:  # Warp needs the ordinal
+        device = torch.device("cuda", torch.cuda.current_device())
+    on_device = wp.array([b.camera], dtype=Camera, device=wp.device_from_torch(device))
+    swapped = dataclasses.replace(a, on_device=on_device)
+    torch.manual_seed(0)
+    n = 300
+    means = (torch.randn(n, 3) * 0.6).to(device).requires_grad_()
+    quats = torch.randn(n, 4, device=device).requires_grad_()
+    scales = (torch.rand(n, 3, device=device) * 0.1 + 0.02).requires_grad_()
+    opacities = (torch.rand(n, device=device) * 0.8 + 0.1).requires_grad_()
+    sh = torch.randn(n, 16, 3, device=device).mul_(0.3).requires_grad_()
+    results = []
+    for camera in (b, swapped):
+        image, _, _ = rasterize(means, quats, scales, opacities, sh, camera=camera, sh_degree=3)
+        grads = torch.autograd.grad(
+            (image * torch.linspace(0, 1, image.numel(), device=device).view_as(image)).sum(),
+            [means, quats, scales, opacities, sh],
+        )
+        results.append((image, grads))
+    (image_b, grads_b), (image_s, grads_s) = results
+    assert image_b.abs().sum() > 0
+    assert torch.equal(image_b, image_s)
+    for g_b, g_s in zip(grads_b, grads_s):
+        if device.type == "cpu":
+            assert torch.equal(g_b, g_s)
+        else:  # the blend's adjoint adds with atomics, in an order that varies from run to run
+            torch.testing.assert_close(g_b, g_s, rtol=1e-4, atol=1e-6)
+
+
+def tiny_scene_views(scene_dir):
+    from cdcgs.io import load_scene
+
+    return load_scene(str(scene_dir), device="cpu").train
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ({"batch_size": 2}, "--batch-size"),
+        ({"background": "random"}, "fixed background"),
+        ({"strategy": "mcmc"}, "mcmc strategy"),
+        ({"optimizer": "torch-adam"}, "torch-adam"),
+    ],
+)
+def test_cuda_graph_refuses_what_it_cannot_capture(tiny_scene, tmp_path, overrides, message):
+    values = {"iters": 10, "background": "white", "cuda_graph": True, **overrides}
+    with pytest.raises(OptionError, match=message):
+        Trainer(tiny_config(tiny_scene, tmp_path / "run", **values)).run()
+
+
+@pytest.mark.parametrize("device", ["cuda"])
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="captures CUDA graphs: needs a CUDA GPU")
+def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_counted_runs(tiny_scene, tmp_path, device):
+    """On CUDA the steps are captured and replayed. The blend's atomic sums make two runs differ a
+    little, so the replayed run is compared with the spread of two counted runs."""
+    values = dict(background="white", device=device)
+    runs = {}
+    for name, extra in (("counted", {}), ("again", {}), ("graph", {"cuda_graph": True})):
+        trainer, result = train_briefly(tiny_scene, tmp_path / name, "3dgs", SHORT, **values, **extra)
+        runs[name] = (trainer, result)
+    summary = runs["graph"][1]["cuda_graph"]
+    assert summary["replayed_steps"] > ITERS // 2 and summary["captures"] >= 2, summary
+    psnr = {name: result["test"]["psnr"] for name, (_, result) in runs.items()}
+    spread = abs(psnr["counted"] - psnr["again"])
+    assert abs(psnr["graph"] - psnr["counted"]) <= max(3 * spread, 0.3), psnr
+    count = {name: trainer.model.num for name, (trainer, _) in runs.items()}
+    assert abs(count["graph"] - count["counted"]) <= max(
+        3 * abs(count["counted"] - count["again"]), 0.02 * count["counted"]
+    ), count
+
+
+def test_cuda_graph_refuses_the_viewer(tiny_scene, tmp_path, capsys):
+    """The viewer renders on its own thread, which would run into the captures: refused before
+    anything is written."""
+    from helpers import train_argv
+
+    from cdcgs.cli import main as cli_main
+
+    out = tmp_path / "run"
+    assert cli_main([*train_argv(tiny_scene, out, 5), "--cuda-graph", "--view"]) == 2
+    assert "--view" in capsys.readouterr().err
+    assert not out.exists()
