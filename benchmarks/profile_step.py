@@ -27,6 +27,9 @@ per stage (by kernel name) and, per part of the step, host time and the GPU time
 launched; "rest of the step" is the wall time less the parts' host time: the trainer's own code, and
 where the GPU sets the pace, the wait for it at the window's end.
 
+``--cuda-graph``: the step of ``cdcgs train --cuda-graph``, set up as ``--sync-free``'s; the
+replayed steps call none of the wrapped parts, so the plain step and the kernels are its figures.
+
 ``--sync-free``: the step of ``cdcgs train --sync-free``. Every training view is rendered once
 before the windows, so that each view's count is known and every render in them goes into slots;
 each window ends with the one read of the device flags that a training makes every 50 iterations
@@ -141,6 +144,7 @@ def prepared(args, count: int, out: str) -> Trainer:
         checkpoint_every=0,
         fused_loss=not args.reference_loss,
         sync_free=getattr(args, "sync_free", False),  # host_overhead.py shares this set-up
+        cuda_graph=getattr(args, "cuda_graph", False),
     )
     options = {}
     if issubclass(strategy_class(args.strategy), MCMC):  # its budget: the profiled count
@@ -264,6 +268,8 @@ def measure(args, count: int) -> dict:
         row["plain_ms_per_step"] = plain_ms
         if trainer.lookahead is not None:
             row["sync_free"] = trainer.lookahead.summary()
+        if trainer.graphs is not None:
+            row["cuda_graph"] = trainer.graphs.summary()
         # One stream runs the kernels one after another: their sum over the plain step's time is
         # the GPU's busy share when nothing measures the host.
         row["kernel_share_of_plain_step"] = min(row["kernel_ms_per_step"] / plain_ms, 1.0)
@@ -465,8 +471,15 @@ def main(argv=None) -> int:
         action="store_true",
         help="the step of cdcgs train --sync-free (renders into slots, no count read)",
     )
+    parser.add_argument(
+        "--cuda-graph",
+        action="store_true",
+        help="the step of cdcgs train --cuda-graph (implies --sync-free): replayed steps run no part of the "
+        "trainer's Python, so only the plain step's time, the kernels and the host syncs mean something",
+    )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
+    args.sync_free = args.sync_free or args.cuda_graph
     ask_for_expandable_segments()  # before CUDA allocates: as `cdcgs train` runs
     if not os.path.isdir(args.data):
         parser.error(f"--data {args.data!r} is not a folder")

@@ -170,6 +170,17 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
     (row,) = json.loads(free.read_text())["rows"]
     assert row["sync_free"]["renders_counted"] == 0 and row["sync_free"]["renders_within_capacity"] == 1 + 3 * 2
     assert "intersection count (sync)" not in row["parts"] and row["parts"]["sync-free read"]["host_ms"] > 0
+    # The --cuda-graph step: on the CPU its steps run one operation at a time, and are counted.
+    graph = tmp_path / "graph.json"
+    assert (
+        profile_step.main(
+            [*argv[:2], "--gaussians", "200", "--steps", "2", "--warmup", "1", "--cuda-graph", "--out", str(graph)]
+        )
+        == 0
+    )
+    (row,) = json.loads(graph.read_text())["rows"]
+    # the warm-up step runs as before (Adam's first step makes the moments a graph names), the windows' replay
+    assert row["cuda_graph"]["replayed_steps"] == 3 * 2 and row["sync_free"]["renders_counted"] == 0
     boxes = tmp_path / "boxes.json"
     assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0
     for exact, box in zip(rows, json.loads(boxes.read_text())["rows"]):
