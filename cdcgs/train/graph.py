@@ -173,7 +173,7 @@ class GraphSteps:
             self.key = key
             return
         graph = torch.cuda.CUDAGraph()
-        # thread_local: another thread's CUDA calls (the viewer's renders) do not break the capture
+        # thread_local: CUDA calls of other threads (none of cdcgs's: --view is refused) do not break it
         with torch.cuda.graph(graph, capture_error_mode="thread_local"):
             stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
             wp.capture_begin(stream=stream, external=True)
