@@ -5,7 +5,7 @@ the counted one as two counted runs are."""
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, tiny_config, train_briefly
+from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, interrupt_at, tiny_config, train_briefly
 
 import cdcgs.train.lookahead as lookahead
 from cdcgs.errors import OptionError
@@ -49,6 +49,23 @@ def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monke
     monkeypatch.undo()
     assert_same_model(counted, graphed)
     assert result["sync_free"]["rewinds"] > 0, result["sync_free"]
+
+
+@CPU_ONLY
+def test_an_interrupted_graph_training_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
+    """Stopped by a signal in a replayed stretch and resumed: the run the uninterrupted one is (the
+    checkpoint holds Adam's step counts as the replays advanced them; the graph is captured anew)."""
+    values = dict(iters=ITERS, log_every=25, background="white", strategy="3dgs", cuda_graph=True)
+    straight = Trainer(tiny_config(tiny_scene, tmp_path / "a", **values), SHORT)
+    straight.run()
+    with monkeypatch.context() as patch:
+        interrupt_at(patch, 70)
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(tiny_config(tiny_scene, tmp_path / "b", **values), SHORT).run()
+    resumed = Trainer(tiny_config(tiny_scene, tmp_path / "b", resume=True, **values), SHORT)
+    result = resumed.run()
+    assert result["cuda_graph"]["replayed_steps"] > 0
+    assert_same_model(straight, resumed)
 
 
 def test_the_kernels_read_the_camera_on_the_device(tiny_scene, device):
