@@ -195,7 +195,7 @@ class TrainConfig:
     )
     cuda_graph: bool = option(
         False,
-        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc)",
+        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view)",
     )
     batch_size: int = option(
         1,
