@@ -158,28 +158,23 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
     )
     (row,) = json.loads(mcmc.read_text())["rows"]
     assert row["gaussians"] == 200 and row["parts"]["strategy after step"]["host_ms"] > 0
+
+    def one_row(name: str, *flags: str) -> dict:
+        """The single row of a 200-Gaussian profile with ``flags``, two steps a window."""
+        path = tmp_path / f"{name}.json"
+        common = ["--gaussians", "200", "--steps", "2", "--warmup", "1", "--out", str(path)]
+        assert profile_step.main([*argv[:2], *common, *flags]) == 0
+        (row,) = json.loads(path.read_text())["rows"]
+        return row
+
     # The --sync-free step: every render of the windows goes into slots and none reads its count;
     # the window's one read is a part of its own.
-    free = tmp_path / "free.json"
-    assert (
-        profile_step.main(
-            [*argv[:2], "--gaussians", "200", "--steps", "2", "--warmup", "1", "--sync-free", "--out", str(free)]
-        )
-        == 0
-    )
-    (row,) = json.loads(free.read_text())["rows"]
+    row = one_row("free", "--sync-free")
     assert row["sync_free"]["renders_counted"] == 0 and row["sync_free"]["renders_within_capacity"] == 1 + 3 * 2
     assert "intersection count (sync)" not in row["parts"] and row["parts"]["sync-free read"]["host_ms"] > 0
-    # The --cuda-graph step: on the CPU its steps run one operation at a time, and are counted.
-    graph = tmp_path / "graph.json"
-    assert (
-        profile_step.main(
-            [*argv[:2], "--gaussians", "200", "--steps", "2", "--warmup", "1", "--cuda-graph", "--out", str(graph)]
-        )
-        == 0
-    )
-    (row,) = json.loads(graph.read_text())["rows"]
-    # the warm-up step runs as before (Adam's first step makes the moments a graph names), the windows' replay
+    # The --cuda-graph step: on the CPU its steps run one operation at a time, and are counted. The
+    # warm-up step runs as before (Adam's first step makes the moments a graph names); the windows replay.
+    row = one_row("graph", "--cuda-graph")
     assert row["cuda_graph"]["replayed_steps"] == 3 * 2 and row["sync_free"]["renders_counted"] == 0
     boxes = tmp_path / "boxes.json"
     assert profile_step.main([*argv[:-1], str(boxes), "--rectangles", "--reference-loss"]) == 0

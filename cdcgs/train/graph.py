@@ -69,8 +69,6 @@ class GraphSteps:
             raise OptionError(f"--cuda-graph captures a step of one view: drop --batch-size {config.batch_size}")
         if config.background == "random":
             raise OptionError("--cuda-graph needs a fixed background: --background random draws one each step")
-        if config.optimizer not in ("adam", "selective"):
-            raise OptionError("--cuda-graph launches FusedAdam itself: use --optimizer adam or selective")
         if getattr(trainer.strategy, "graph_signature", None) is None:
             raise OptionError(
                 f"--cuda-graph: the {config.strategy} strategy's hooks draw random numbers or read the device on "
@@ -203,9 +201,11 @@ class GraphSteps:
             current = wp.empty(1, dtype=Camera, device=cameras.device)
             prepared = dataclasses.replace(pairs[0][0], on_device=current)
             photos = torch.stack([photo for _, photo in pairs])
-            if scale == 1:  # the views keep their photos in the stack: no second copy
-                for view, photo in zip(trainer.scene.train, photos):
-                    view.image = photo
+            for v, photo in zip(views, photos):  # the views keep their photos in the stack: no second copy
+                if scale == 1:
+                    trainer.scene.train[v].image = photo
+                else:
+                    trainer._scaled[(v, scale)] = (pairs[v][0], photo)
             self._tables = {scale: (cameras, current, prepared, photos)}  # one scale at a time
         return self._tables[scale]
 
