@@ -31,6 +31,7 @@ import time
 import torch
 
 import cdcgs
+import cdcgs.render
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -166,8 +167,16 @@ def main(argv=None):
         metavar="M",
         help="also time cdcgs into ceil(M x count) slots without the count read (M >= 1), e.g. 1.25 2",
     )
+    parser.add_argument(
+        "--blend-backward",
+        choices=("block", "warp"),
+        default=None,
+        help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
+    )
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     args = parser.parse_args(argv)
+    if args.blend_backward:
+        cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward
     if any(not math.isfinite(m) or m < 1.0 for m in args.capacity):
         parser.error(f"--capacity: margins must be at least 1 (room for every pair), got {args.capacity}")
     device = torch.device(args.device)

@@ -461,6 +461,12 @@ def main(argv=None) -> int:
         help="the SH adjoint's CUDA kernel (cdcgs.render.SH_BACKWARD_CUDA; default: as it is)",
     )
     parser.add_argument(
+        "--blend-backward",
+        choices=("block", "warp"),
+        default=None,
+        help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
+    )
+    parser.add_argument(
         "--rectangles", action="store_true", help="bin each Gaussian into its whole rectangle (no exact footprints)"
     )
     parser.add_argument(
@@ -493,12 +499,15 @@ def main(argv=None) -> int:
     if args.rectangles:
         cdcgs.render.start_binning = rectangles
     sh_backward = cdcgs.render.SH_BACKWARD_CUDA
+    blend_backward = cdcgs.render.BLEND_BACKWARD_CUDA
     cdcgs.render.SH_BACKWARD_CUDA = args.sh_backward or sh_backward
+    cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward or blend_backward
     try:
         rows = [measure(args, count) for count in args.gaussians]
     finally:
         cdcgs.render.start_binning = exact
         cdcgs.render.SH_BACKWARD_CUDA = sh_backward
+        cdcgs.render.BLEND_BACKWARD_CUDA = blend_backward
     machine = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
     print_report(rows, machine)
     if args.out:

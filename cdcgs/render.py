@@ -28,7 +28,13 @@ from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
 from .kernels._statistics import accumulate_statistics_kernel
 from .kernels.binning import BinningStart, TileBins, finish_binning, finish_binning_within, start_binning
-from .kernels.blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel
+from .kernels.blend import (
+    blend_backward_kernel,
+    blend_backward_lean_kernel,
+    blend_backward_lean_warp_kernel,
+    blend_backward_warp_kernel,
+    blend_forward_kernel,
+)
 from .kernels.projection import (
     SH_BLOCK,
     Camera,
@@ -56,6 +62,11 @@ __all__ = [
 # against grouped's 0.292 and 0.870; each Gaussian's gradient is written by one thread, without
 # atomics, in both.
 SH_BACKWARD_CUDA = "staged"
+
+# How the blend adjoint adds each Gaussian's gradients on CUDA: "block" (the warps' sums meet in
+# the block's shared memory, one global atomic per tile and Gaussian; the default) or "warp" (each
+# warp adds its own sums to global memory). The CPU runs the same code for both.
+BLEND_BACKWARD_CUDA = "block"
 
 # The most slots ``rasterize(capacity=...)`` takes: the sort holds twice as many keys, and Warp's
 # launches and sorts index with 32-bit integers.
@@ -516,7 +527,7 @@ class _Blend(torch.autograd.Function):
         ]
         with _warp_scope(means2d.device):
             _launch(
-                blend_backward_kernel if sums else blend_backward_lean_kernel,
+                _blend_backward_kernel(sums, means2d.device.type == "cuda"),
                 bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
                 inputs=[
                     bins.tile_ranges,
@@ -541,6 +552,16 @@ class _Blend(torch.autograd.Function):
         if ctx.needs_input_grad[5]:
             grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
         return (*grads, grad_background, None, None, None, None)
+
+
+def _blend_backward_kernel(sums: bool, cuda: bool):
+    """The blend adjoint's kernel: with or without the depth and AbsGS sums, and on CUDA the one
+    ``BLEND_BACKWARD_CUDA`` names."""
+    if BLEND_BACKWARD_CUDA not in ("block", "warp"):
+        raise ValueError(f"cdcgs.render.BLEND_BACKWARD_CUDA must be 'block' or 'warp', got {BLEND_BACKWARD_CUDA!r}")
+    if cuda and BLEND_BACKWARD_CUDA == "warp":
+        return blend_backward_warp_kernel if sums else blend_backward_lean_warp_kernel
+    return blend_backward_kernel if sums else blend_backward_lean_kernel
 
 
 def _blend_gaussian_inputs(means2d, conics, colors, opacities, depths):

@@ -6,7 +6,7 @@ import torch
 from conftest import make_scene
 
 import cdcgs
-from cdcgs.kernels import TILE_SIZE
+from cdcgs.kernels import BLOCK_SIZE, TILE_SIZE
 
 SCENES = {
     # name: (n, width, height, seed)
@@ -332,6 +332,46 @@ def test_backward_without_sums_gives_the_same_gradients(device):
     for lean, full in zip(*grads):
         assert full.abs().max() > 0
         torch.testing.assert_close(lean, full, atol=1e-6 * full.abs().max().item(), rtol=1e-5)
+
+
+@pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="the two ways of adding the adjoint's sums differ on CUDA only"
+)
+@pytest.mark.parametrize("variant", ["block", "warp"])
+@pytest.mark.parametrize("sums", [False, True])
+def test_blend_adjoint_over_several_batches_matches_reference(monkeypatch, variant, sums):
+    """Both CUDA blend adjoints (``BLEND_BACKWARD_CUDA``: the warps' sums met in shared memory, or
+    added by each warp) against the float64 reference, on faint large Gaussians whose tile lists run
+    over several batches of BLOCK_SIZE, so that the shared sums are read and zeroed between batches;
+    with the depth and AbsGS sums (``sums``) and without."""
+    monkeypatch.setattr(cdcgs.render, "BLEND_BACKWARD_CUDA", variant)
+    scene = make_scene(900, 40, 24, sh_degree=1, seed=11, hard_cases=False)
+    g = torch.Generator().manual_seed(5)
+    scene.scales *= 3.0
+    scene.opacities = 0.01 + 0.03 * torch.rand(900, generator=g)
+    (tensors, _, image, _, info), (ref_tensors, _, ref) = _render_both(scene, "cuda", requires_grad=True)
+    ranges = info.tile_ranges.cpu()
+    assert (ranges[:, 1] - ranges[:, 0]).max() > 2 * BLOCK_SIZE, "the lists must span several batches"
+    cot_image = torch.randn(24, 40, 3, generator=g)
+    cot_depth = torch.randn(24, 40, generator=g)
+    loss = (image * cot_image.cuda()).sum()
+    ref_image, _, ref_depth, _ = ref
+    ref_loss = (ref_image * cot_image).sum()
+    if sums:
+        loss = loss + (info.depth * cot_depth.cuda()).sum()
+        ref_loss = ref_loss + (ref_depth * cot_depth).sum()
+    loss.backward()
+    ref_loss.backward()
+    for name, ours, theirs in zip(["means", "quats", "scales", "opacities", "sh"], tensors, ref_tensors):
+        expected = theirs.grad
+        assert expected.abs().max() > 0, f"{name}: the reference gradient is zero, the test would prove nothing"
+        torch.testing.assert_close(
+            ours.grad.double().cpu(),
+            expected,
+            atol=VJP_REL[name] * expected.abs().max().item(),
+            rtol=0,
+            msg=lambda m, name=name: f"{variant}, {name}: {m}",
+        )
 
 
 def test_absgrad_matches_reference(device):

@@ -18,10 +18,14 @@ __all__ = [
     "BATCH_FIELDS",
     "BATCH_LOAD",
     "BATCH_STORE",
+    "GRADIENTS_ADD",
+    "GRADIENTS_READ",
+    "GRADIENTS_ZERO",
     "GROUP_SIZE",
     "WARP_SIZE",
     "atomic_max_nonnegative",
     "block_count",
+    "block_gradients",
     "block_max_int",
     "block_sync",
     "group_read",
@@ -256,4 +260,96 @@ def tile_ids(op: int, slot: int, value: int) -> int:
 )
 def block_max_int(value: int) -> int:
     """The largest ``value`` of the block's threads (a barrier: all must call it); the value itself on the CPU."""
+    ...
+
+
+# ------------------------------------------------------------------------------------------------
+# Per-Gaussian sums of the block's batch: up to 12 floats for each of the BLOCK_SIZE slots, in
+# shared memory. A warp adds its lanes' values for one slot with a transposed reduction: at each of
+# the first halving steps a lane keeps half of its values and trades the other half with the lane
+# ``offset`` away, so 8 values take 4 + 2 + 1 shuffles (and 2 more to finish) where summing each
+# over the warp takes 8 x 5; the lanes left holding a field's sum add it into the slot with
+# shared-memory atomics. After the batch one thread per slot reads the sums and adds them to global
+# memory once per tile, where the warps' own atomics would add them once per warp (8 per tile).
+
+GRADIENTS_ZERO = wp.constant(0)
+GRADIENTS_ADD = wp.constant(1)
+GRADIENTS_READ = wp.constant(2)
+# Floats per slot: 12 fields and one of padding (an odd stride keeps a slot's fields, and the
+# same field of consecutive slots, in different shared-memory banks).
+_GRADIENT_STRIDE = 13
+
+
+@wp.func_native(
+    f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ float sums[{BLOCK_SIZE * _GRADIENT_STRIDE}];
+    float* mine = sums + slot * {_GRADIENT_STRIDE};
+    if (op == {GRADIENTS_ZERO}) {{
+        for (int f = 0; f < 12; ++f) mine[f] = 0.0f;
+        return a;
+    }}
+    if (op == {GRADIENTS_READ}) {{
+        return wp::vec4(mine[4 * part], mine[4 * part + 1], mine[4 * part + 2], mine[4 * part + 3]);
+    }}
+    const int lane = threadIdx.x & {WARP_SIZE - 1};
+    // Fields 0..7 (a and b): three halving steps, then a butterfly over the last two lane bits.
+    float v[8] = {{a.c[0], a.c[1], a.c[2], a.c[3], b.c[0], b.c[1], b.c[2], b.c[3]}};
+    int field = 0;
+    int width = 8;
+    #pragma unroll
+    for (int offset = 16; offset >= 4; offset >>= 1) {{
+        width >>= 1;
+        const int high = (lane & offset) ? 1 : 0;
+        field += high * width;
+        for (int i = 0; i < width; ++i) {{
+            const float keep = high ? v[width + i] : v[i];
+            const float send = high ? v[i] : v[width + i];
+            v[i] = keep + __shfl_xor_sync({FULL_MASK}, send, offset);
+        }}
+    }}
+    float s = v[0];
+    s += __shfl_xor_sync({FULL_MASK}, s, 2);
+    s += __shfl_xor_sync({FULL_MASK}, s, 1);
+    if ((lane & 3) == 0) atomicAdd(mine + field, s);
+    if (fields <= 9) {{
+        // Field 8 (c.x) summed over the warp.
+        float t = c.c[0];
+        for (int offset = 16; offset > 0; offset >>= 1) t += __shfl_xor_sync({FULL_MASK}, t, offset);
+        if (lane == 0) atomicAdd(mine + 8, t);
+    }} else {{
+        // Fields 8..11 (c): two halving steps, then a butterfly over the last three lane bits.
+        float w[4] = {{c.c[0], c.c[1], c.c[2], c.c[3]}};
+        int extra = 8;
+        int half = 4;
+        #pragma unroll
+        for (int offset = 16; offset >= 8; offset >>= 1) {{
+            half >>= 1;
+            const int high = (lane & offset) ? 1 : 0;
+            extra += high * half;
+            for (int i = 0; i < half; ++i) {{
+                const float keep = high ? w[half + i] : w[i];
+                const float send = high ? w[i] : w[half + i];
+                w[i] = keep + __shfl_xor_sync({FULL_MASK}, send, offset);
+            }}
+        }}
+        float t = w[0];
+        for (int offset = 4; offset > 0; offset >>= 1) t += __shfl_xor_sync({FULL_MASK}, t, offset);
+        if ((lane & 7) == 0) atomicAdd(mine + extra, t);
+    }}
+    return a;
+#else
+    return a;
+#endif
+"""
+)
+def block_gradients(op: int, slot: int, part: int, fields: int, a: wp.vec4, b: wp.vec4, c: wp.vec4) -> wp.vec4:
+    """The block's per-slot sums (CUDA only; on the CPU it returns ``a`` and keeps nothing).
+
+    GRADIENTS_ZERO: this thread zeroes ``slot``'s 12 fields. GRADIENTS_ADD: every lane of the warp
+    (all 32 must call it together) adds its ``a``, ``b`` and ``c`` to ``slot``'s fields 0-3, 4-7
+    and 8-11, of which the first ``fields`` (9 or 12) are kept. GRADIENTS_READ: fields ``4 * part``
+    to ``4 * part + 3`` of ``slot``. A slot is read and zeroed by the thread that owns it, after a
+    barrier that follows the warps' additions.
+    """
     ...

@@ -19,8 +19,12 @@ from ._lanes import (
     BATCH_FIELDS,
     BATCH_LOAD,
     BATCH_STORE,
+    GRADIENTS_ADD,
+    GRADIENTS_READ,
+    GRADIENTS_ZERO,
     atomic_max_nonnegative,
     block_count,
+    block_gradients,
     block_max_int,
     block_sync,
     lane_any,
@@ -44,6 +48,8 @@ __all__ = [
     "W_MAX_WEIGHT",
     "blend_backward_kernel",
     "blend_backward_lean_kernel",
+    "blend_backward_lean_warp_kernel",
+    "blend_backward_warp_kernel",
     "blend_forward_kernel",
     "complexity_kernel",
 ]
@@ -245,10 +251,13 @@ def blend_forward_kernel(
         last_contributor_out[y, x] = last
 
 
-def _blend_backward(sums: bool):
+def _blend_backward(sums: bool, block: bool):
     """The blend adjoint; with ``sums`` False it leaves out the depth gradients and the AbsGS sums
     (for a loss that does not use the depth and a strategy that does not read the sums: a sixth of
-    its time on an H100 goes to their warp sums and atomics)."""
+    its time on an H100 goes to their warp sums and atomics). With ``block`` True (CUDA; the CPU
+    code is the same either way) the warps add each Gaussian's sums into the block's shared memory
+    (``_lanes.block_gradients``) and one thread per Gaussian adds the tile's sum to global memory
+    after the batch; with False each warp adds its own sums to global memory."""
 
     # 4 blocks of BLOCK_SIZE (256) per SM: at most 64 registers (what the kernel without sums
     # needs; 48 spill).
@@ -318,6 +327,10 @@ def _blend_backward(sums: bool):
         # d(color)/d(alpha_i) and d(alpha_pixel)/d(alpha_i) both carry T_final / (1 - alpha_i).
         g_final = final_transmittance * (g_alpha - wp.dot(background[0], g_color))
 
+        fields = int(9)  # of block_gradients: colour, opacity, mean, conic (and depth, AbsGS sums)
+        if wp.static(sums):
+            fields = 12
+        zero4 = wp.vec4(0.0, 0.0, 0.0, 0.0)
         behind_color = wp.vec3(0.0, 0.0, 0.0)  # S: colour composited behind Gaussian i
         behind_depth = float(0.0)
         # The list is walked back to front in batches of BLOCK_SIZE from the last contributor of any
@@ -333,6 +346,8 @@ def _blend_backward(sums: bool):
             if staged != 0:
                 if local < count:
                     stage_gaussian(local, sorted_gauss_ids[batch - local], means2d, conics, colors, opacities, depths)
+                    if wp.static(block):
+                        block_gradients(GRADIENTS_ZERO, local, 0, fields, zero4, zero4, zero4)
                 block_sync()
             for j in range(wp.max(batch - warp_last, 0), count):
                 k = batch - j
@@ -379,6 +394,18 @@ def _blend_backward(sums: bool):
                         )
                         d_conic = grad_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
                 d_abs = wp.vec2(wp.abs(d_mean[0]), wp.abs(d_mean[1]))
+                if wp.static(block):
+                    if staged != 0:
+                        block_gradients(
+                            GRADIENTS_ADD,
+                            j,
+                            0,
+                            fields,
+                            wp.vec4(d_color[0], d_color[1], d_color[2], d_opacity),
+                            wp.vec4(d_mean[0], d_mean[1], d_conic[0], d_conic[1]),
+                            wp.vec4(d_conic[2], d_depth, d_abs[0], d_abs[1]),
+                        )
+                        continue
                 d_color = lane_sum_vec3(d_color)
                 if wp.static(sums):
                     d_depth = lane_sum(d_depth)
@@ -399,15 +426,34 @@ def _blend_backward(sums: bool):
                         wp.atomic_add(absgrad_means2d_out, g, d_abs)
             if staged != 0:
                 block_sync()  # the batch is read before the next one overwrites it
+                if wp.static(block):
+                    # The tile's sums of the Gaussian in this thread's slot, to global memory.
+                    if local < count:
+                        head = block_gradients(GRADIENTS_READ, local, 0, fields, zero4, zero4, zero4)
+                        middle = block_gradients(GRADIENTS_READ, local, 1, fields, zero4, zero4, zero4)
+                        tail = block_gradients(GRADIENTS_READ, local, 2, fields, zero4, zero4, zero4)
+                        if not (head == zero4 and middle == zero4 and tail == zero4):  # else no pixel of the tile took it
+                            g = tile_ids(BATCH_LOAD, local, 0)
+                            wp.atomic_add(grad_colors_out, g, wp.vec3(head[0], head[1], head[2]))
+                            wp.atomic_add(grad_opacities_out, g, head[3])
+                            wp.atomic_add(grad_means2d_out, g, wp.vec2(middle[0], middle[1]))
+                            wp.atomic_add(grad_conics_out, g, wp.vec3(middle[2], middle[3], tail[0]))
+                            if wp.static(sums):
+                                wp.atomic_add(grad_depths_out, g, tail[1])
+                                wp.atomic_add(absgrad_means2d_out, g, wp.vec2(tail[2], tail[3]))
             batch -= BLOCK_SIZE
 
     return blend_backward_kernel
 
 
-blend_backward_kernel = _blend_backward(True)
+# On CUDA the warps' sums go through the block's shared memory (``block``), measured faster
+# (docs/benchmarks.md); the ``_warp_`` kernels add each warp's sums to global memory, as before.
+blend_backward_kernel = _blend_backward(True, True)
+blend_backward_warp_kernel = _blend_backward(True, False)
 # The same for a loss without the depth sum and no AbsGS sums: it reads no ``grad_depth`` and
 # leaves ``grad_depths_out`` and ``absgrad_means2d_out`` untouched (None may be passed for all three).
-blend_backward_lean_kernel = _blend_backward(False)
+blend_backward_lean_kernel = _blend_backward(False, True)
+blend_backward_lean_warp_kernel = _blend_backward(False, False)
 
 
 # How the complexity pass finds w_max(p): the largest alpha * T up to the pixel's last contributor
