@@ -43,6 +43,7 @@ sys.path.insert(0, HERE)
 
 from profile_step import _annotation, prepared
 
+from cdcgs.kernels.adam import adam_quads
 from cdcgs.train.loss import fused_photometric_loss, mse_to_psnr
 from cdcgs.train.optim import launch_adam
 
@@ -58,7 +59,7 @@ class StaticAdam:
         self.params = [p for group in optimizer.param_groups for p in group["params"]]
         self.table = torch.zeros(len(self.params), 7, dtype=torch.int64, device=device)
         self.rates = torch.zeros(len(self.params), 8, dtype=torch.float32, device=device)
-        self.total = sum(p.numel() for p in self.params)
+        self.threads = sum(adam_quads(p.numel()) for p in self.params)
 
     def fill(self, grads: list[torch.Tensor]) -> None:
         """The tables for the parameters with ``grads`` (one per parameter, in order)."""
@@ -76,12 +77,12 @@ class StaticAdam:
                 rates.append(
                     [float(group["lr"]), beta1, beta2, 1.0 - beta1, 1.0 - beta2, float(group["eps"]), *corrections]
                 )
-                start += p.numel()
+                start += adam_quads(p.numel())
         self.table.copy_(torch.tensor(rows, dtype=torch.int64))
         self.rates.copy_(torch.tensor(rates, dtype=torch.float32))
 
     def step(self, halt: torch.Tensor) -> None:
-        launch_adam(self.table, self.rates, self.total, None, halt)
+        launch_adam(self.table, self.rates, self.threads, None, halt)
 
 
 def step_of(trainer, view: int, adam: StaticAdam, losses: torch.Tensor):

@@ -10,7 +10,7 @@ import warp as wp
 from helpers import SHORT, hand_model, tiny_config
 
 import cdcgs.train.optim
-from cdcgs.kernels import fused_adam_kernel
+from cdcgs.kernels import adam_quads, fused_adam_kernel, selective_adam_kernel
 from cdcgs.train import ops
 from cdcgs.train.config import LearningRates
 from cdcgs.train.optim import FusedAdam
@@ -133,7 +133,9 @@ def test_every_group_in_one_launch_is_torch_adam(device, monkeypatch):
 
 def test_the_fused_kernel_from_plain_warp(device):
     """``fused_adam_kernel`` launched with Warp arrays and its two tables, no torch: two
-    parameters of different widths, a row mask, against Adam in float64 written out with numpy."""
+    parameters of different widths, a row mask, against Adam in float64 written out with numpy.
+    A thread updates a quad of four values: the second parameter starts at the first's quad count,
+    and the launch is the sum of both parameters' quads."""
     wp_device = device  # "cpu" or "cuda", as Warp names them
     rng = np.random.default_rng(6)
     rows, widths, lrs, step = 11, (3, 5), (0.02, 0.5), 3
@@ -145,7 +147,9 @@ def test_the_fused_kernel_from_plain_warp(device):
     arrays = [[wp.array(x[k], dtype=float, device=wp_device) for x in (values, grads, m0, v0)] for k in range(2)]
     beta1, beta2, eps = 0.9, 0.999, 1e-8
     bc1, bc2 = 1 - beta1**step, 1 - beta2**step
-    layout = [[0, rows * widths[0], widths[0]], [rows * widths[0], rows * widths[1], widths[1]]]
+    counts = [rows * w for w in widths]
+    layout = [[0, counts[0], widths[0]], [adam_quads(counts[0]), counts[1], widths[1]]]
+    dim = adam_quads(counts[0]) + adam_quads(counts[1])
     table = [[a.ptr for a in arrays[k]] + layout[k] for k in range(2)]
     parameters = wp.array(table, dtype=wp.int64, device=wp_device)
     rates = wp.array(
@@ -154,9 +158,9 @@ def test_the_fused_kernel_from_plain_warp(device):
     mask = wp.array(selected, dtype=wp.uint8, device=wp_device)
     never = wp.empty(0, dtype=wp.int32, device=wp_device)  # halt: empty, never halted
     halt = wp.ones(1, dtype=wp.int32, device=wp_device)
-    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[parameters, rates, mask, halt], device=wp_device)
+    wp.launch(fused_adam_kernel, dim, inputs=[parameters, rates, mask, halt], device=wp_device)
     assert np.array_equal(arrays[0][0].numpy(), values[0]), "a set halt changes nothing"
-    wp.launch(fused_adam_kernel, rows * sum(widths), inputs=[parameters, rates, mask, never], device=wp_device)
+    wp.launch(fused_adam_kernel, dim, inputs=[parameters, rates, mask, never], device=wp_device)
     for k, w in enumerate(widths):
         g = grads[k].astype(np.float64)
         m = beta1 * m0[k] + (1 - beta1) * g
@@ -168,6 +172,82 @@ def test_the_fused_kernel_from_plain_warp(device):
         for ours, ref in zip(got, expected):
             np.testing.assert_allclose(ours, ref, rtol=2e-6, atol=1e-7)
         assert np.array_equal(got[0][keep], values[k][keep]), "an unselected row moved"
+
+
+SENTINEL = -7.0  # the floats around each array: the kernel must leave them alone
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_fused_kernel_on_tails_unaligned_arrays_and_rows_across_quads(device, masked):
+    """Five parameters in one launch of ``fused_adam_kernel``: counts that are not multiples of
+    four (a last, partial quad), rows of 3 and 5 values (quads that span two rows, each row
+    selected on its own), and arrays that start 4, 8 or 12 bytes into larger ones (not 16-byte
+    aligned: the quads go value by value), against Adam in float64 (numpy) and, bit for bit,
+    ``selective_adam_kernel`` (one value a thread, ``adam_update`` as well). The floats around each
+    array stay as they were. The 128-bit path (CUDA, no mask, aligned whole quads) is taken by the
+    CUDA run only: on the CPU every quad goes value by value."""
+    rng = np.random.default_rng(7)
+    rows, pad, step = 13, 4, 4
+    # (values per row, each array's offset in floats: value, gradient, exp_avg, exp_avg_sq)
+    layouts = [(3, (0, 0, 0, 0)), (5, (0, 0, 0, 0)), (4, (0, 1, 0, 0)), (4, (0, 0, 0, 3)), (1, (2, 2, 2, 2))]
+    lrs = [0.01 * (k + 1) for k in range(len(layouts))]
+    beta1, beta2, eps = 0.9, 0.999, 1e-8
+    bc1, bc2 = 1 - beta1**step, 1 - beta2**step
+    selected = (rng.random(rows) < 0.5).astype(np.uint8) if masked else np.ones(rows, dtype=np.uint8)
+    host = []  # per parameter: value, gradient, exp_avg, exp_avg_sq (float32)
+    for width, _ in layouts:
+        n = rows * width
+        moments = rng.normal(size=n) * 0.1, rng.normal(size=n) ** 2 * 0.01
+        host.append([x.astype(np.float32) for x in (rng.normal(size=n), rng.normal(size=n), *moments)])
+
+    def placed():
+        """Each array inside a larger Warp array, at its offset, SENTINEL around it: (larger, view)."""
+        out = []
+        for (_, offsets), arrays in zip(layouts, host):
+            pairs = []
+            for x, offset in zip(arrays, offsets):
+                larger = np.full(offset + x.size + pad, SENTINEL, dtype=np.float32)
+                larger[offset : offset + x.size] = x
+                larger = wp.array(larger, dtype=float, device=device)
+                pairs.append((larger, larger[offset : offset + x.size]))
+            out.append(pairs)
+        return out
+
+    fused, single = placed(), placed()
+    assert (fused[2][1][1].ptr % 16, fused[4][0][1].ptr % 16) == (4, 8), "the offsets leave them unaligned"
+    table, start = [], 0
+    for (width, _), pairs in zip(layouts, fused):
+        table.append([view.ptr for _, view in pairs] + [start, rows * width, width])
+        start += adam_quads(rows * width)
+    rates = [[lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bc1, np.sqrt(bc2)] for lr in lrs]
+    mask = wp.array(selected, dtype=wp.uint8, device=device)
+    inputs = [
+        wp.array(table, dtype=wp.int64, device=device),
+        wp.array(rates, dtype=float, device=device),
+        mask if masked else wp.empty(0, dtype=wp.uint8, device=device),
+        wp.empty(0, dtype=wp.int32, device=device),
+    ]
+    wp.launch(fused_adam_kernel, start, inputs=inputs, device=device)
+    for (width, _), pairs, lr in zip(layouts, single, lrs):
+        arrays = [view for _, view in pairs]
+        arguments = [*arrays, mask, width, lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bc1, np.sqrt(bc2)]
+        wp.launch(selective_adam_kernel, rows * width, inputs=arguments, device=device)
+    for k, (width, offsets) in enumerate(layouts):
+        value, grad, m0, v0 = (x.astype(np.float64) for x in host[k])
+        m = beta1 * m0 + (1 - beta1) * grad
+        v = beta2 * v0 + (1 - beta2) * grad * grad
+        p = value - lrs[k] / bc1 * m / (np.sqrt(v) / np.sqrt(bc2) + eps)
+        keep = np.repeat(selected == 0, width)
+        expected = {0: np.where(keep, value, p), 2: np.where(keep, m0, m), 3: np.where(keep, v0, v)}
+        for j, reference in expected.items():  # the gradient (1) is read only
+            got = fused[k][j][1].numpy()
+            np.testing.assert_allclose(got, reference, rtol=2e-6, atol=1e-7, err_msg=f"parameter {k}, array {j}")
+            assert np.array_equal(got, single[k][j][1].numpy()), (
+                f"parameter {k}, array {j}: not selective_adam_kernel's"
+            )
+        for j, (larger, view) in enumerate(fused[k]):
+            around = np.delete(larger.numpy(), np.arange(offsets[j], offsets[j] + view.shape[0]))
+            assert np.all(around == SENTINEL), f"parameter {k}, array {j}: a float outside it changed"
 
 
 @pytest.mark.parametrize(
@@ -303,8 +383,8 @@ def test_a_torch_adam_checkpoint_resumes():
 
 
 def test_a_model_too_large_for_one_launch_takes_several(monkeypatch):
-    """Launch indices are 32-bit: above MAX_LAUNCH_VALUES values the parameters go into several
-    launches, with the same result."""
+    """Launch indices are 32-bit: above MAX_LAUNCH_THREADS threads (quads of four values) the
+    parameters go into several launches, with the same result."""
     g = torch.Generator().manual_seed(8)
     base = [torch.randn(10, *shape, generator=g) for shape in MODEL_SHAPES]
     grads = [torch.randn(p.shape, generator=g) for p in base]
@@ -312,8 +392,8 @@ def test_a_model_too_large_for_one_launch_takes_several(monkeypatch):
     real_launch = cdcgs.train.optim.launch
     monkeypatch.setattr(cdcgs.train.optim, "launch", lambda *a, **k: launches.append(a[1]) or real_launch(*a, **k))
     results = {}
-    for limit in (cdcgs.train.optim.MAX_LAUNCH_VALUES, 450):
-        monkeypatch.setattr(cdcgs.train.optim, "MAX_LAUNCH_VALUES", limit)
+    for limit in (cdcgs.train.optim.MAX_LAUNCH_THREADS, 120):
+        monkeypatch.setattr(cdcgs.train.optim, "MAX_LAUNCH_THREADS", limit)
         launches.clear()
         params = [p.clone().requires_grad_() for p in base]
         optimizer = FusedAdam([{"params": [p], "lr": 0.05} for p in params])
@@ -322,7 +402,8 @@ def test_a_model_too_large_for_one_launch_takes_several(monkeypatch):
         optimizer.step(torch.arange(10) % 3 != 0)
         results[limit] = (list(launches), [p.detach() for p in params])
     one, several = results.values()
-    assert one[0] == [590] and several[0] == [140, 450], "sizes of the launches: all 590 values, then split"
+    # 30, 30, 40, 10, 30 and 450 values: 8, 8, 10, 3, 8 and 113 quads
+    assert one[0] == [150] and several[0] == [37, 113], "sizes of the launches: all 150 quads, then split"
     for a, b in zip(one[1], several[1]):
         assert torch.equal(a, b)
 

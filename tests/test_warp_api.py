@@ -39,6 +39,7 @@ PUBLIC_KERNEL_API = {
     "ssim_l1_launch_size",
     "selective_adam_kernel",
     "fused_adam_kernel",
+    "adam_quads",
     "mcmc_noise_kernel",
 }
 

@@ -5,8 +5,9 @@ and their adjoints, ``bin_gaussians`` (the tiles' depth-sorted lists), the blend
 with ``dim=tiles_x * tiles_y * BLOCK_SIZE``, ``block_dim=BLOCK_SIZE``), the CDC-GS complexity pass,
 the exact KNN (``knn_search``), the training loss, L1 + D-SSIM, fused (``ssim_l1_*``: two
 separable passes forward, two backward), and Adam on every row or on selected ones
-(``fused_adam_kernel``: every parameter in one launch; ``selective_adam_kernel``: one parameter),
-and 3DGS-MCMC's noise on the means (``mcmc_noise_kernel``).
+(``fused_adam_kernel``: every parameter in one launch, ``adam_quads`` threads a parameter;
+``selective_adam_kernel``: one parameter), and 3DGS-MCMC's noise on the means
+(``mcmc_noise_kernel``).
 ``examples/warp_launch.py`` renders an image with them.
 
 The binning kernels that ``bin_gaussians`` runs stay importable from ``cdcgs.kernels.binning`` for
@@ -15,7 +16,7 @@ callers that manage their own buffers; the submodules (``projection``, ``binning
 """
 
 from ._constants import BLOCK_SIZE, TILE_SIZE
-from .adam import fused_adam_kernel, selective_adam_kernel
+from .adam import adam_quads, fused_adam_kernel, selective_adam_kernel
 from .binning import TileBins, bin_gaussians
 from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel, complexity_kernel
 from .knn import knn_search
@@ -44,6 +45,7 @@ __all__ = [
     "TILE_SIZE",
     "Camera",
     "TileBins",
+    "adam_quads",
     "bin_gaussians",
     "blend_backward_kernel",
     "blend_backward_lean_kernel",

@@ -432,7 +432,9 @@ def _blend_backward(sums: bool, block: bool):
                         head = block_gradients(GRADIENTS_READ, local, 0, fields, zero4, zero4, zero4)
                         middle = block_gradients(GRADIENTS_READ, local, 1, fields, zero4, zero4, zero4)
                         tail = block_gradients(GRADIENTS_READ, local, 2, fields, zero4, zero4, zero4)
-                        if not (head == zero4 and middle == zero4 and tail == zero4):  # else no pixel of the tile took it
+                        if not (
+                            head == zero4 and middle == zero4 and tail == zero4
+                        ):  # else no pixel of the tile took it
                             g = tile_ids(BATCH_LOAD, local, 0)
                             wp.atomic_add(grad_colors_out, g, wp.vec3(head[0], head[1], head[2]))
                             wp.atomic_add(grad_opacities_out, g, head[3])

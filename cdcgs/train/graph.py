@@ -41,10 +41,11 @@ from torch.autograd.graph import increment_version
 from .._interop import launch, warp_scope, wp_arg
 from ..errors import OptionError
 from ..kernels._lookahead import select_camera_kernel
+from ..kernels.adam import adam_quads
 from ..kernels.projection import Camera
 from ..render import rasterize
 from .lookahead import READ_EVERY
-from .optim import MAX_LAUNCH_VALUES, FusedAdam, launch_adam
+from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
 __all__ = ["GraphSteps"]
 
@@ -102,7 +103,7 @@ class GraphSteps:
         signature = trainer.strategy.graph_signature(iteration)
         if signature is None or trainer.strategy.refines_at(iteration):
             return None
-        if sum(p.numel() for p in trainer.model.params.values()) > MAX_LAUNCH_VALUES:
+        if sum(adam_quads(p.numel()) for p in trainer.model.params.values()) > MAX_LAUNCH_THREADS:
             return None  # Adam would need several launches (FusedAdam.step splits them)
         # the addresses the graph and Adam's table hold: a refinement or a reset replaces tensors
         optimizer = trainer.optimizer
@@ -238,24 +239,25 @@ class GraphSteps:
         trainer.guard.record(loss, image_psnr, lookahead.halt)
         trainer.strategy.observe(ctx, trainer.strategy_state)
         visible = info.visible if config.optimizer == "selective" else None
-        total = sum(p.numel() for p in self._params)
+        threads = sum(adam_quads(p.numel()) for p in self._params)
         if not self.cuda:  # one operation at a time: this step's gradients
             self._grads = [p.grad for p in self._params]
             self._fill_table()
-        launch_adam(self._table, self._rates, total, visible, lookahead.halt)
+        launch_adam(self._table, self._rates, threads, visible, lookahead.halt)
         if not self.cuda:
             trainer.optimizer.zero_grad(set_to_none=True)
             self._grads = None
 
     def _fill_table(self) -> None:
-        """Adam's address table: each parameter, its gradient (the graph's), its two moments."""
+        """Adam's address table: each parameter, its gradient (the graph's), its two moments, its
+        first quad, its number of values and its values per row."""
         rows, start = [], 0
         optimizer = self.trainer.optimizer
         for p, grad in zip(self._params, self._grads):
             state = optimizer.state[p]
             addresses = [x.data_ptr() for x in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
             rows.append([*addresses, start, p.numel(), p.numel() // p.shape[0]])
-            start += p.numel()
+            start += adam_quads(p.numel())
         self._table.copy_(torch.tensor(rows, dtype=torch.int64))
 
     def release(self) -> None:

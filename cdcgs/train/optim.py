@@ -7,8 +7,9 @@ and resume treat it as Adam, and a run may resume from a checkpoint of torch's A
 
 ``step()`` is Adam: one launch of ``cdcgs.kernels.adam.fused_adam_kernel`` for all groups, where
 torch's fused Adam launches once per group (six for a 3DGS model, each with its own learning
-rate). ``step(selected)`` updates only the rows where ``selected`` [N] is True and does not touch
-the others' parameters or moments ("selective Adam", ``--optimizer selective``).
+rate); a thread updates four consecutive values, with 128-bit loads and stores on CUDA.
+``step(selected)`` updates only the rows where ``selected`` [N] is True and does not touch the
+others' parameters or moments ("selective Adam", ``--optimizer selective``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import warp as wp
 from torch.autograd.graph import increment_version
 
 from .._interop import halt_arg, launch, warp_scope, wp_arg
-from ..kernels.adam import fused_adam_kernel
+from ..kernels.adam import adam_quads, fused_adam_kernel
 
 __all__ = ["FusedAdam", "SelectiveAdam"]
 
@@ -69,7 +70,7 @@ class FusedAdam(torch.optim.Optimizer):
             table, start = [], 0
             for addresses, count, width, _ in batch:
                 table.append([*addresses, start, count, width])
-                start += count
+                start += adam_quads(count)
             tables = [_on(device, table, torch.int64), _on(device, [entry[3] for entry in batch], torch.float32)]
             launch_adam(tables[0], tables[1], start, selected, halt)
         for _, p in updated:  # the kernel wrote through addresses: tell torch, as an in-place op would
@@ -85,11 +86,12 @@ class FusedAdam(torch.optim.Optimizer):
 
 
 def launch_adam(
-    table: torch.Tensor, rates: torch.Tensor, total: int, selected: torch.Tensor | None, halt: torch.Tensor | None
+    table: torch.Tensor, rates: torch.Tensor, dim: int, selected: torch.Tensor | None, halt: torch.Tensor | None
 ) -> None:
-    """One launch of ``fused_adam_kernel`` over ``total`` values with its two tables (device
-    tensors: int64 [P, 7] and float32 [P, 8]), on the rows where ``selected`` (bool [N]) is True or
-    every row, while ``halt`` is clear."""
+    """One launch of ``fused_adam_kernel`` of ``dim`` threads (the sum of the parameters'
+    ``adam_quads``, four values a thread) with its two tables (device tensors: int64 [P, 7], whose
+    column 4 holds each parameter's first quad, and float32 [P, 8]), on the rows where ``selected``
+    (bool [N]) is True or every row, while ``halt`` is clear."""
     device = table.device
     if selected is None:
         mask = torch.empty(0, dtype=torch.uint8, device=device)
@@ -98,7 +100,7 @@ def launch_adam(
     with warp_scope(device):
         launch(
             fused_adam_kernel,
-            total,
+            dim,
             inputs=[wp_arg(table, wp.int64), wp_arg(rates, wp.float32), wp_arg(mask, wp.uint8), halt_arg(halt, device)],
         )
 
@@ -128,8 +130,10 @@ def _advance(group: dict, state: dict) -> list[float]:
 SelectiveAdam = FusedAdam
 
 
-# A launch's indices are 32-bit: parameters are grouped into launches of fewer values.
-MAX_LAUNCH_VALUES = 2**31 - 1
+# A launch's indices are 32-bit: parameters are grouped into launches of fewer threads (quads of
+# four values, adam_quads). The kernel indexes a parameter's values in 32 bits too.
+MAX_LAUNCH_THREADS = 2**31 - 1
+MAX_PARAMETER_VALUES = 2**31 - 1
 
 
 def _check(group: dict, p: torch.Tensor, state: dict | None, device: torch.device, selected) -> None:
@@ -142,7 +146,7 @@ def _check(group: dict, p: torch.Tensor, state: dict | None, device: torch.devic
         raise ValueError(f"FusedAdam updates parameters on one device, got {p.device} and {device}")
     if p.grad.shape != p.shape:
         raise ValueError(f"a gradient of shape {list(p.grad.shape)} for a parameter of {list(p.shape)}")
-    if p.numel() > MAX_LAUNCH_VALUES:
+    if p.numel() > MAX_PARAMETER_VALUES:
         raise ValueError(f"FusedAdam updates parameters of at most 2^31 - 1 values, got {list(p.shape)}")
     if selected is not None and p.dim() == 0:
         raise ValueError("selected picks rows, and a 0-d parameter has none")
@@ -196,15 +200,16 @@ def _number(value) -> bool:
 
 
 def _launches(parameters: list) -> list[list]:
-    """The parameters in order, grouped into launches of at most MAX_LAUNCH_VALUES values (one
+    """The parameters in order, grouped into launches of at most MAX_LAUNCH_THREADS threads (one
     launch unless the model is very large)."""
     batches, total = [[]], 0
     for entry in parameters:
-        if total + entry[1] > MAX_LAUNCH_VALUES:
+        threads = adam_quads(entry[1])
+        if total + threads > MAX_LAUNCH_THREADS:
             batches.append([])
             total = 0
         batches[-1].append(entry)
-        total += entry[1]
+        total += threads
     return [batch for batch in batches if batch]
 
 
