@@ -62,6 +62,23 @@ class Camera:
     near: float
 
 
+@wp.func
+def camera_of(camera: Camera, camera_on_device: wp.array(dtype=Camera)):
+    """``camera``, or with a non-empty ``camera_on_device`` that array's entry 0."""
+    if camera_on_device.shape[0] > 0:
+        return camera_on_device[0]
+    return camera
+
+
+@wp.func_grad(camera_of)
+def adj_camera_of(camera: Camera, camera_on_device: wp.array(dtype=Camera), adj_ret: Camera):
+    """No gradient reaches the camera: without this adjoint a kernel's autodiff keeps a Camera of
+    adjoints for each source (the projection's adjoint rose from 119 to 156 registers, and took
+    50% longer on an H100)."""
+    pass
+
+
+
 def make_camera(viewmat, intrinsics, width: int, height: int, near: float = 0.01) -> Camera:
     """Build a :class:`Camera` from a 4x4 world-to-camera matrix and a 3x3 intrinsic matrix.
 
@@ -149,9 +166,7 @@ def project_gaussians_kernel(
     device; every camera it holds must have ``camera``'s image size).
     """
     i = wp.tid()
-    cam = camera
-    if camera_on_device.shape[0] > 0:
-        cam = camera_on_device[0]
+    cam = camera_of(camera, camera_on_device)
     flags = nonfinite_out.shape[0]
     if flags > 0:
         # every writer writes 1: no atomics needed
