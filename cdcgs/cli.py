@@ -170,8 +170,7 @@ def cmd_train(args) -> int:
     # In a torchrun launch only rank 0 speaks and serves the viewer (docs/distributed.md).
     main_rank = os.environ.get("RANK", "0") in ("", "0")
     callbacks = []
-    if args.view and config.cuda_graph:
-        # its renders on another thread would run into the captures (at every refinement)
+    if args.view and config.cuda_graph:  # refused before the scene loads (the trainer would too)
         raise OptionError("--view renders while the training captures its steps: drop --view or --cuda-graph")
     if args.view and main_rank:
         from .viewer import TrainingViewer, ViewerSettings, check_port_free

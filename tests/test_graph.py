@@ -133,11 +133,12 @@ def test_cuda_graph_refuses_what_it_cannot_capture(tiny_scene, tmp_path, overrid
 @pytest.mark.parametrize("device", ["cuda"])
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="captures CUDA graphs: needs a CUDA GPU")
 def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_counted_runs(tiny_scene, tmp_path, device):
-    """On CUDA the steps are captured and replayed. The blend's atomic sums make two runs differ a
-    little, so the replayed run is compared with the spread of two counted runs."""
+    """On CUDA the steps are captured and replayed, by default. The blend's atomic sums make two
+    runs differ a little, so the replayed run is compared with the spread of two counted runs
+    (``--no-cuda-graph``)."""
     values = dict(background="white", device=device)
     runs = {}
-    for name, extra in (("counted", {}), ("again", {}), ("graph", {"cuda_graph": True})):
+    for name, extra in (("counted", {"cuda_graph": False}), ("again", {"cuda_graph": False}), ("graph", {})):
         trainer, result = train_briefly(tiny_scene, tmp_path / name, "3dgs", SHORT, **values, **extra)
         runs[name] = (trainer, result)
     summary = runs["graph"][1]["cuda_graph"]
@@ -162,3 +163,67 @@ def test_cuda_graph_refuses_the_viewer(tiny_scene, tmp_path, capsys):
     assert cli_main([*train_argv(tiny_scene, out, 5), "--cuda-graph", "--view"]) == 2
     assert "--view" in capsys.readouterr().err
     assert not out.exists()
+
+
+class _Viewer:
+    """A callback that renders beside the training, as ``cdcgs train --view``'s does."""
+
+    renders_beside_training = True
+
+    def on_start(self, trainer): ...
+
+    def on_step(self, trainer): ...
+
+    def on_end(self, trainer): ...
+
+
+def _as_on_cuda(monkeypatch) -> None:
+    """The default's refusals without the device's own (the CPU), as a CUDA training meets them."""
+    import cdcgs.train.graph as graph
+    import cdcgs.train.trainer as trainer_module
+
+    monkeypatch.setattr(trainer_module, "graph_refusal", lambda t, default=False: graph.graph_refusal(t))
+
+
+def test_the_default_on_the_cpu_trains_without_graphs_and_says_why(tiny_scene, tmp_path):
+    result = Trainer(tiny_config(tiny_scene, tmp_path / "run", iters=10)).run()
+    assert result["cuda_graph"] == {"off": "--cuda-graph replays steps on CUDA: this training runs on cpu"}
+    assert "sync_free" not in result
+
+
+@pytest.mark.parametrize(
+    "values, callbacks, off",
+    [
+        ({"cuda_graph": False}, (), "--no-cuda-graph"),
+        ({"strategy": "mcmc"}, (), "mcmc strategy"),
+        ({"batch_size": 2}, (), "drop --batch-size 2"),
+        ({}, (_Viewer(),), "drop --view"),
+    ],
+    ids=["off", "mcmc", "batch", "viewer"],
+)
+def test_the_default_gives_way_where_the_training_cannot_replay(
+    tiny_scene, tmp_path, monkeypatch, values, callbacks, off
+):
+    """Left at none, ``cuda_graph`` replays the steps wherever the training can take it on CUDA,
+    else trains without and records why in metrics.json (the explicit option refuses instead)."""
+    _as_on_cuda(monkeypatch)
+    config = tiny_config(tiny_scene, tmp_path / "run", iters=10, background="white", **values)
+    result = Trainer(config, callbacks=callbacks).run()
+    assert off in result["cuda_graph"]["off"], result["cuda_graph"]
+
+
+def test_cuda_graph_refuses_a_viewer_callback(tiny_scene, tmp_path):
+    config = tiny_config(tiny_scene, tmp_path / "run", iters=10, background="white", cuda_graph=True)
+    with pytest.raises(OptionError, match="drop --view"):
+        Trainer(config, callbacks=[_Viewer()]).run()
+
+
+@CPU_ONLY
+def test_the_default_on_a_gpu_is_the_graph_training(tiny_scene, tmp_path, monkeypatch):
+    """With the device's reason taken away (as on CUDA), the default training replays its steps:
+    the same run as ``--cuda-graph`` (on the CPU, one operation at a time), bit for bit."""
+    given, _ = train_briefly(tiny_scene, tmp_path / "given", "3dgs", SHORT, background="white", cuda_graph=True)
+    _as_on_cuda(monkeypatch)
+    default, result = train_briefly(tiny_scene, tmp_path / "default", "3dgs", SHORT, background="white")
+    assert result["cuda_graph"]["replayed_steps"] > 0 and default.lookahead is not None
+    assert_same_model(given, default)

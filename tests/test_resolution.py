@@ -92,7 +92,8 @@ def test_delayed_decay_of_the_position_rate():
 
 
 def test_training_renders_at_the_scheduled_sizes(tiny_scene, tmp_path, device):
-    config = tiny_config(tiny_scene, tmp_path, device, iters=400, resolution_schedule="dash")
+    # every step through trainer._render: not replayed as a CUDA graph (the default on CUDA)
+    config = tiny_config(tiny_scene, tmp_path, device, iters=400, resolution_schedule="dash", cuda_graph=False)
     trainer = Trainer(config, {**SHORT, "densify_until": 250})
     trainer._setup()
     trainer.resolution = ResolutionSchedule(scales=(3.0, 1.0), begins=(0, 0, 200), until=250)

@@ -470,7 +470,8 @@ def test_a_step_waits_for_the_gpu_once_on_cuda(tiny_scene, tmp_path, monkeypatch
         return read_count
 
     monkeypatch.setattr(render, "_count_reader", allowed)
-    trainer = Trainer(tiny_config(tiny_scene, tmp_path, device="cuda", iters=30, optimizer=optimizer))
+    # the counted step (the default replays steps as CUDA graphs, which read no count)
+    trainer = Trainer(tiny_config(tiny_scene, tmp_path, device="cuda", iters=30, optimizer=optimizer, cuda_graph=False))
     trainer._setup()
     for _ in range(3):  # kernels compiled, the allocator's blocks in place
         trainer.train_step()

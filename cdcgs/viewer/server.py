@@ -228,6 +228,10 @@ class TrainingViewer:
     from ``on_start``, hands it the model after each step, stops it at the end (also on an error
     or an interrupt). ``viewer``: the started :class:`Viewer`, or None."""
 
+    # Its renders run on another thread during the training: no steps replayed as CUDA graphs
+    # (their captures would take the viewer's launches in; cdcgs.train.graph.graph_refusal).
+    renders_beside_training = True
+
     def __init__(self, settings: ViewerSettings | None = None):
         self.settings = settings or ViewerSettings()
         self.viewer: Viewer | None = None
