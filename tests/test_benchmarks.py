@@ -629,6 +629,45 @@ def test_bench_rasterize_times_the_render_without_its_count_read(tmp_path, capsy
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="with a GPU the script measures instead")
+def test_tile_balance_schedules_the_walks_by_hand_and_runs_on_a_scene(tmp_path, capsys):
+    """Jobs of 9, 1, 1, 1 (+ 0 overhead) on two slots: in order the 9 starts at once (makespan 9);
+    longest first the same; 1, 1, 9 in order ends at 10, longest first at 9. Then the script on a
+    small scene (no order ends before the longest walk, split walks sooner still), and the walks
+    against a loop over the pixels."""
+    import tile_balance
+
+    assert tile_balance.makespan([9.0, 1.0, 1.0, 1.0], 2, [0, 1, 2, 3]) == 9.0
+    assert tile_balance.makespan([1.0, 1.0, 9.0], 2, [0, 1, 2]) == 10.0
+    lengths = torch.tensor([1, 1, 9])
+    report = tile_balance.balance(lengths, lengths, 2, 0.0)
+    assert (report["numbered"], report["longest_first"], report["any_order"], report["split"]) == (10.0, 9.0, 9.0, 5.5)
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=48, height=36, points=300)
+    out = tmp_path / "balance.json"
+    assert tile_balance.main(["--data", str(scene), "--gaussians", "800", "--views", "0", "1", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [row["view"] for row in rows] == [0, 1] and all(row["gaussians"] == 800 for row in rows)
+    for row in rows:
+        assert row["walk_max"] > 0 and row["split"] <= row["any_order"] <= min(row["numbered"], row["longest_first"])
+    assert "longest first" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        tile_balance.main(["--data", str(scene), "--views", "99"])
+    # The walks against a loop over the tiles' pixels.
+    from conftest import make_scene
+
+    import cdcgs
+
+    small = make_scene(300, 40, 24, sh_degree=0, seed=3)
+    _, _, info = cdcgs.rasterize(*small.tensors(), viewmat=small.viewmat, K=small.K, width=40, height=24)
+    lengths, walks = tile_balance.tile_walks(info)
+    for tile in range(info.tiles_x * info.tiles_y):
+        ty, tx = divmod(tile, info.tiles_x)
+        start, end = info.tile_ranges[tile].tolist()
+        last = info.last_contributor[ty * 16 : ty * 16 + 16, tx * 16 : tx * 16 + 16].max().item()
+        assert lengths[tile] == end - start
+        assert walks[tile] == (max(last - start + 1, 0) if end > start else 0) and walks[tile] <= lengths[tile]
+    assert walks.max() > 0
+
+
 def test_graph_step_says_it_needs_a_gpu():
     import graph_step
 
