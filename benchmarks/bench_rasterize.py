@@ -173,10 +173,21 @@ def main(argv=None):
         default=None,
         help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
     )
+    parser.add_argument(
+        "--blend-chunk",
+        type=int,
+        default=None,
+        help="list entries per block of the blend adjoint, a multiple of 256 (0: whole tiles; "
+        "cdcgs.render.BLEND_CHUNK; default: as it is)",
+    )
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     args = parser.parse_args(argv)
+    if args.blend_chunk is not None and (args.blend_chunk < 0 or args.blend_chunk % 256):
+        parser.error(f"--blend-chunk must be 0 or a multiple of 256, got {args.blend_chunk}")
     if args.blend_backward:
         cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward
+    if args.blend_chunk is not None:
+        cdcgs.render.BLEND_CHUNK = args.blend_chunk
     if any(not math.isfinite(m) or m < 1.0 for m in args.capacity):
         parser.error(f"--capacity: margins must be at least 1 (room for every pair), got {args.capacity}")
     device = torch.device(args.device)

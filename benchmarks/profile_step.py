@@ -467,6 +467,13 @@ def main(argv=None) -> int:
         help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
     )
     parser.add_argument(
+        "--blend-chunk",
+        type=int,
+        default=None,
+        help="list entries per block of the blend adjoint, a multiple of 256 (0: whole tiles; "
+        "cdcgs.render.BLEND_CHUNK; default: as it is)",
+    )
+    parser.add_argument(
         "--rectangles", action="store_true", help="bin each Gaussian into its whole rectangle (no exact footprints)"
     )
     parser.add_argument(
@@ -485,6 +492,8 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
+    if args.blend_chunk is not None and (args.blend_chunk < 0 or args.blend_chunk % 256):
+        parser.error(f"--blend-chunk must be 0 or a multiple of 256, got {args.blend_chunk}")
     args.sync_free = args.sync_free or args.cuda_graph
     ask_for_expandable_segments()  # before CUDA allocates: as `cdcgs train` runs
     if not os.path.isdir(args.data):
@@ -502,12 +511,16 @@ def main(argv=None) -> int:
     blend_backward = cdcgs.render.BLEND_BACKWARD_CUDA
     cdcgs.render.SH_BACKWARD_CUDA = args.sh_backward or sh_backward
     cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward or blend_backward
+    blend_chunk = cdcgs.render.BLEND_CHUNK
+    if args.blend_chunk is not None:
+        cdcgs.render.BLEND_CHUNK = args.blend_chunk
     try:
         rows = [measure(args, count) for count in args.gaussians]
     finally:
         cdcgs.render.start_binning = exact
         cdcgs.render.SH_BACKWARD_CUDA = sh_backward
         cdcgs.render.BLEND_BACKWARD_CUDA = blend_backward
+        cdcgs.render.BLEND_CHUNK = blend_chunk
     machine = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
     print_report(rows, machine)
     if args.out:

@@ -1,7 +1,8 @@
 """How unevenly a render's work falls on its tiles: what the blend adjoint's tail costs.
 
     python benchmarks/tile_balance.py --data SCENE [--images images] [--ply MODEL]
-        [--gaussians 1000000] [--views 0 1 2] [--slots 528] [--overhead 50] [--out balance.json]
+        [--gaussians 1000000] [--views 0 1 2] [--slots 528] [--overhead 50] [--chunks 256 512 1024]
+        [--out balance.json]
 
 The blend kernels give each 16 x 16 tile one block. The adjoint's block walks its tile's list
 from the last contributor of any of its pixels down to the list's start, so its time grows with
@@ -11,8 +12,8 @@ runs alone at the end. For each view this renders the model (the scene's points 
 tile's list length and backward walk, and schedules the walks greedily onto ``--slots``
 concurrent blocks (132 SMs x 4 blocks of 256 threads on an H100), each walk costing its length plus
 ``--overhead``: in tile-number order (as the kernels take them), longest list first (a reordering),
-and the bounds of any order (the longest walk) and of walks split evenly (the total over the
-slots). Printed per view: the walks (largest, mean) and each makespan over the numbered one. A
+the bounds of any order (the longest walk) and of walks split evenly (the total over the slots),
+and the chunked adjoint's blocks for each of ``--chunks``. Printed per view: the walks (largest, mean) and each makespan over the numbered one. A
 model of the scheduling, not a timing: a block alone on an SM runs faster than one sharing it,
 which this ignores.
 """
@@ -60,7 +61,20 @@ def makespan(costs: list[float], slots: int, order: list[int]) -> float:
     return max(ends)
 
 
-def balance(lengths: torch.Tensor, walks: torch.Tensor, slots: int, overhead: float) -> dict:
+def chunked_costs(walks: list[int], chunk: int, overhead: float) -> list[float]:
+    """The blocks of the chunked adjoint (``cdcgs.render.BLEND_CHUNK``): each tile's walk cut into
+    pieces of at most ``chunk`` entries (a tile that walks nothing keeps no block), each costing
+    its piece plus ``overhead``."""
+    costs = []
+    for walk in walks:
+        for first in range(0, walk, chunk):
+            costs.append(min(chunk, walk - first) + overhead)
+    return costs
+
+
+def balance(
+    lengths: torch.Tensor, walks: torch.Tensor, slots: int, overhead: float, chunks: tuple[int, ...] = ()
+) -> dict:
     costs = [float(w) + overhead for w in walks.tolist()]
     numbered = makespan(costs, slots, list(range(len(costs))))
     longest = sorted(range(len(costs)), key=lambda t: (-int(lengths[t]), t))  # as the binning orders them
@@ -72,6 +86,11 @@ def balance(lengths: torch.Tensor, walks: torch.Tensor, slots: int, overhead: fl
         "longest_first": makespan(costs, slots, longest),
         "any_order": max(sum(costs) / slots, max(costs)),  # no order ends before the longest walk
         "split": sum(costs) / slots,  # walks cut into pieces that fill every slot evenly
+        "chunked": {
+            str(chunk): makespan(pieces, slots, list(range(len(pieces))))
+            for chunk in chunks
+            for pieces in [chunked_costs(walks.tolist(), chunk, overhead)]
+        },
     }
 
 
@@ -84,14 +103,17 @@ def main(argv=None) -> int:
     parser.add_argument("--views", type=int, nargs="+", default=[0], help="training views to render")
     parser.add_argument("--slots", type=int, default=528, help="blocks the GPU runs at once")
     parser.add_argument("--overhead", type=float, default=50.0, help="a block's cost besides its walk")
+    parser.add_argument(
+        "--chunks", type=int, nargs="*", default=[256, 512, 1024], help="chunk sizes of the chunked adjoint to model"
+    )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
     if not os.path.isdir(args.data):
         parser.error(f"--data {args.data!r} is not a folder")
     if args.ply and not os.path.isfile(args.ply):
         parser.error(f"--ply {args.ply!r} is not a file")
-    if args.slots < 1 or args.overhead < 0:
-        parser.error("--slots must be at least 1 and --overhead at least 0")
+    if args.slots < 1 or args.overhead < 0 or any(c < 1 for c in args.chunks):
+        parser.error("--slots and --chunks must be at least 1 and --overhead at least 0")
     setup = argparse.Namespace(
         data=args.data,
         images=args.images,
@@ -113,13 +135,18 @@ def main(argv=None) -> int:
     for view in args.views:
         with torch.no_grad():
             _, _, info = trainer._render(view)
-        row = {"view": view, "gaussians": trainer.model.num, **balance(*tile_walks(info), args.slots, args.overhead)}
+        row = {
+            "view": view,
+            "gaussians": trainer.model.num,
+            **balance(*tile_walks(info), args.slots, args.overhead, tuple(args.chunks)),
+        }
         rows.append(row)
         print(
             f"view {view}: {row['tiles']} tiles, walk max {row['walk_max']} mean {row['walk_mean']:.0f}; "
             f"makespan numbered {row['numbered']:.0f}; over it: longest first "
             f"{row['longest_first'] / row['numbered']:.3f}, the best order {row['any_order'] / row['numbered']:.3f}, "
-            f"walks split evenly {row['split'] / row['numbered']:.3f}",
+            f"walks split evenly {row['split'] / row['numbered']:.3f}"
+            + "".join(f", chunks of {c} {m / row['numbered']:.3f}" for c, m in row["chunked"].items()),
             flush=True,
         )
     if args.out:

@@ -33,7 +33,9 @@ from .kernels.blend import (
     blend_backward_lean_kernel,
     blend_backward_lean_warp_kernel,
     blend_backward_warp_kernel,
+    blend_forward_chunked_kernel,
     blend_forward_kernel,
+    walk_chunks_kernel,
 )
 from .kernels.projection import (
     SH_BLOCK,
@@ -67,6 +69,14 @@ SH_BACKWARD_CUDA = "staged"
 # the block's shared memory, one global atomic per tile and Gaussian; the default) or "warp" (each
 # warp adds its own sums to global memory). The CPU runs the same code for both.
 BLEND_BACKWARD_CUDA = "block"
+
+# The blend adjoint's work per block: 0, a tile's whole walk (from the last contributor of any of
+# its pixels down to its list's start); or a multiple of BLOCK_SIZE, chunks of that many list
+# entries, each its own block, starting from per-pixel checkpoints that the forward pass saves at
+# the chunk boundaries (rows of 20 bytes a pixel, pairs / BLEND_CHUNK + tiles of them). A tile
+# whose walk is ten times the mean holds the whole launch up (benchmarks/tile_balance.py);
+# chunks spread it over the GPU. Not yet timed on a GPU: 0 until it is.
+BLEND_CHUNK = 0
 
 # The most slots ``rasterize(capacity=...)`` takes: the sort holds twice as many keys, and Warp's
 # launches and sorts index with 32-bit integers.
@@ -470,10 +480,20 @@ class _Blend(torch.autograd.Function):
         transmittance = means2d.new_empty(height, width)
         depth_sum = means2d.new_empty(height, width)
         last = torch.empty(height, width, dtype=torch.int32, device=device)
+        chunk = _blend_chunk()
+        num_tiles = bins.tiles_x * bins.tiles_y
+        checkpoints = (None, None, None)
+        if chunk:  # the colour and transmittance at each chunk boundary, and each tile's walk
+            rows = bins.num_intersections // chunk + num_tiles
+            checkpoints = (
+                means2d.new_empty(rows, BLOCK_SIZE, 4),
+                means2d.new_empty(rows, BLOCK_SIZE),
+                torch.full((num_tiles,), -1, dtype=torch.int32, device=device),
+            )
         with _warp_scope(device):
             _launch(
-                blend_forward_kernel,
-                bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
+                blend_forward_chunked_kernel if chunk else blend_forward_kernel,
+                num_tiles * BLOCK_SIZE,
                 inputs=[
                     bins.tile_ranges,
                     bins.sorted_gauss_ids,
@@ -482,16 +502,24 @@ class _Blend(torch.autograd.Function):
                     width,
                     height,
                     bins.tiles_x,
+                    chunk,
                 ],
                 outputs=[
                     _arg(image, wp.vec3),
                     _arg(transmittance, wp.float32),
                     _arg(depth_sum, wp.float32),
                     _arg(last, wp.int32),
+                    *(
+                        None if t is None else _arg(t, dtype)
+                        for t, dtype in zip(checkpoints, (wp.vec4, wp.float32, wp.int32))
+                    ),
                 ],
                 block_dim=BLOCK_SIZE,
             )
-        ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, transmittance, last)
+        saved = (image, depth_sum) if chunk else ()
+        ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, transmittance, last, *saved)
+        ctx.chunk = chunk
+        ctx.checkpoints = checkpoints
         ctx.bins = bins
         ctx.absgrad_request = absgrad_request
         ctx.mark_non_differentiable(last)
@@ -500,7 +528,7 @@ class _Blend(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_transmittance, grad_depth_sum, _grad_last):
-        means2d, conics, colors, opacities, depths, background, transmittance, last = ctx.saved_tensors
+        means2d, conics, colors, opacities, depths, background, transmittance, last, *saved = ctx.saved_tensors
         bins = ctx.bins
         height, width = transmittance.shape
         grad_image = means2d.new_zeros(height, width, 3) if grad_image is None else grad_image.contiguous()
@@ -525,10 +553,28 @@ class _Blend(torch.autograd.Function):
             *_blend_gaussian_inputs(*grads[:4], grads[4] if sums else None),
             _arg(absgrad, wp.vec2) if sums else None,
         ]
+        num_tiles = bins.tiles_x * bins.tiles_y
+        chunk, blocks = ctx.chunk, num_tiles
+        chunk_ends = image = depth_sum = None
         with _warp_scope(means2d.device):
+            if chunk:  # each tile's walk in chunks: their table, and a block for every chunk there may be
+                image, depth_sum = saved
+                counts = torch.empty(num_tiles, dtype=torch.int32, device=means2d.device)
+                chunk_ends = torch.empty_like(counts)
+                _launch(
+                    walk_chunks_kernel,
+                    num_tiles,
+                    inputs=[bins.tile_ranges, _arg(ctx.checkpoints[2], wp.int32), chunk],
+                    outputs=[_arg(counts, wp.int32)],
+                )
+                wp.utils.array_scan(
+                    wp.from_torch(counts, dtype=wp.int32), wp.from_torch(chunk_ends, dtype=wp.int32), inclusive=True
+                )
+                blocks = num_tiles + bins.num_intersections // chunk
+            checkpoint_color, checkpoint_depth = ctx.checkpoints[:2]
             _launch(
                 _blend_backward_kernel(sums, means2d.device.type == "cuda"),
-                bins.tiles_x * bins.tiles_y * BLOCK_SIZE,
+                blocks * BLOCK_SIZE,
                 inputs=[
                     bins.tile_ranges,
                     bins.sorted_gauss_ids,
@@ -537,8 +583,14 @@ class _Blend(torch.autograd.Function):
                     width,
                     height,
                     bins.tiles_x,
+                    chunk,
+                    None if chunk_ends is None else _arg(chunk_ends, wp.int32),
                     _arg(transmittance, wp.float32),
                     _arg(last, wp.int32),
+                    None if image is None else _arg(image, wp.vec3),
+                    None if depth_sum is None else _arg(depth_sum, wp.float32),
+                    None if checkpoint_color is None else _arg(checkpoint_color, wp.vec4),
+                    None if checkpoint_depth is None else _arg(checkpoint_depth, wp.float32),
                     _arg(grad_image, wp.vec3),
                     None if grad_alpha is None else _arg(grad_alpha, wp.float32),
                     _arg(grad_depth_sum, wp.float32) if sums else None,
@@ -552,6 +604,13 @@ class _Blend(torch.autograd.Function):
         if ctx.needs_input_grad[5]:
             grad_background = (transmittance.unsqueeze(-1) * grad_image).sum(dim=(0, 1))
         return (*grads, grad_background, None, None, None, None)
+
+
+def _blend_chunk() -> int:
+    """``BLEND_CHUNK``, checked: 0 or a positive multiple of BLOCK_SIZE."""
+    if not isinstance(BLEND_CHUNK, int) or BLEND_CHUNK < 0 or BLEND_CHUNK % BLOCK_SIZE:
+        raise ValueError(f"cdcgs.render.BLEND_CHUNK must be 0 or a multiple of {BLOCK_SIZE}, got {BLEND_CHUNK!r}")
+    return BLEND_CHUNK
 
 
 def _blend_backward_kernel(sums: bool, cuda: bool):

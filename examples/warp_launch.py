@@ -78,8 +78,9 @@ def render(means, quats, scales, opacities, sh, viewmat, K, width, height, devic
             width,
             height,
             bins.tiles_x,
+            0,  # chunk_size: no checkpoints for a chunked adjoint (the three None outputs below)
         ],
-        outputs=[image, transmittance, depth_sum, last_contributor],
+        outputs=[image, transmittance, depth_sum, last_contributor, None, None, None],
         block_dim=BLOCK_SIZE,  # one tile per block
         device=device,
     )

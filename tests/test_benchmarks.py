@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+import cdcgs.render
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.train import DataConfig, TrainConfig, Trainer
 
@@ -148,6 +149,10 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
         assert row["complexity_pass"]["wall_ms_per_view_one_at_a_time"] > 0
     printed = capsys.readouterr().out
     assert "| ms per step (wall) |" in printed and "| Γ pass: ms per view (wall), one view at a time |" in printed
+    # The chunked blend adjoint through a whole step (BLEND_CHUNK restored after), and a bad chunk refused.
+    assert profile_step.main([*argv, "--blend-chunk", "256"]) == 0 and cdcgs.render.BLEND_CHUNK == 0
+    with pytest.raises(SystemExit):
+        profile_step.main([*argv, "--blend-chunk", "100"])
     # 3DGS-MCMC's step (its noise and regularisers), at the profiled count as its budget.
     mcmc = tmp_path / "mcmc.json"
     assert (
@@ -641,6 +646,9 @@ def test_tile_balance_schedules_the_walks_by_hand_and_runs_on_a_scene(tmp_path, 
     lengths = torch.tensor([1, 1, 9])
     report = tile_balance.balance(lengths, lengths, 2, 0.0)
     assert (report["numbered"], report["longest_first"], report["any_order"], report["split"]) == (10.0, 9.0, 9.0, 5.5)
+    # chunks of 4: the 9 as 4, 4, 1 beside the two 1s; on two slots 1 + 4 + 1 and 1 + 4, so 6
+    assert tile_balance.chunked_costs([1, 1, 9, 0], 4, 0.0) == [1.0, 1.0, 4.0, 4.0, 1.0]
+    assert tile_balance.balance(lengths, lengths, 2, 0.0, (4,))["chunked"] == {"4": 6.0}
     scene = make_procedural_scene(tmp_path / "scene", views=6, width=48, height=36, points=300)
     out = tmp_path / "balance.json"
     assert tile_balance.main(["--data", str(scene), "--gaussians", "800", "--views", "0", "1", "--out", str(out)]) == 0

@@ -6,6 +6,7 @@ import torch
 from conftest import make_scene
 
 import cdcgs
+import cdcgs.render
 from cdcgs.kernels import BLOCK_SIZE, TILE_SIZE
 
 SCENES = {
@@ -372,6 +373,52 @@ def test_blend_adjoint_over_several_batches_matches_reference(monkeypatch, varia
             rtol=0,
             msg=lambda m, name=name: f"{variant}, {name}: {m}",
         )
+
+
+@pytest.mark.parametrize("sums", [False, True])
+def test_the_chunked_adjoint_matches_reference(device, monkeypatch, sums):
+    """``BLEND_CHUNK``: the adjoint walks each tile's list in chunks of 256 entries, one block
+    each, a pixel that composites past its chunk starting from the forward pass's checkpoint at
+    the chunk's end. On faint large Gaussians whose walks span several chunks: the float64
+    reference's gradients, and those of the whole-tile adjoint up to float rounding."""
+    scene = make_scene(900, 40, 24, sh_degree=1, seed=11, hard_cases=False)
+    g = torch.Generator().manual_seed(5)
+    scene.scales *= 3.0
+    scene.opacities = 0.01 + 0.03 * torch.rand(900, generator=g)
+    cot_image, cot_depth = torch.randn(24, 40, 3, generator=g), torch.randn(24, 40, generator=g)
+    grads = {}
+    for chunk in (0, 256):
+        monkeypatch.setattr(cdcgs.render, "BLEND_CHUNK", chunk)
+        (tensors, _, image, _, info), (ref_tensors, _, ref) = _render_both(scene, device, requires_grad=True)
+        loss = (image * cot_image.to(device)).sum()
+        ref_image, _, ref_depth, _ = ref
+        ref_loss = (ref_image * cot_image).sum()
+        if sums:
+            loss = loss + (info.depth * cot_depth.to(device)).sum()
+            ref_loss = ref_loss + (ref_depth * cot_depth).sum()
+        loss.backward()
+        ref_loss.backward()
+        grads[chunk] = [t.grad.double().cpu() for t in tensors]
+        for name, ours, theirs in zip(["means", "quats", "scales", "opacities", "sh"], grads[chunk], ref_tensors):
+            expected = theirs.grad
+            assert expected.abs().max() > 0, name
+            torch.testing.assert_close(
+                ours,
+                expected,
+                atol=VJP_REL[name] * expected.abs().max().item(),
+                rtol=0,
+                msg=lambda m, n=name: f"{n}: {m}",
+            )
+    ranges = info.tile_ranges.cpu()
+    last = info.last_contributor.cpu()
+    walks = [
+        last[ty * 16 : ty * 16 + 16, tx * 16 : tx * 16 + 16].max().item() - ranges[ty * info.tiles_x + tx, 0].item() + 1
+        for ty in range(info.tiles_y)
+        for tx in range(info.tiles_x)
+    ]
+    assert max(walks) > 2 * 256, "the walks must span several chunks"
+    for chunked, whole in zip(grads[256], grads[0]):
+        torch.testing.assert_close(chunked, whole, rtol=0, atol=1e-4 * whole.abs().max().item())
 
 
 def test_absgrad_matches_reference(device):

@@ -50,8 +50,10 @@ __all__ = [
     "blend_backward_lean_kernel",
     "blend_backward_lean_warp_kernel",
     "blend_backward_warp_kernel",
+    "blend_forward_chunked_kernel",
     "blend_forward_kernel",
     "complexity_kernel",
+    "walk_chunks_kernel",
 ]
 
 # CUDA: --use_fast_math (approximate exp and division, as gsplat builds its kernels; the CPU build
@@ -65,13 +67,32 @@ MIN_TRANSMITTANCE = wp.constant(1.0e-4)
 
 
 @wp.func
-def tile_pixel(tid: int, tiles_x: int):
-    """Pixel (x, y) and tile index of thread ``tid`` when each tile is a block of BLOCK_SIZE threads."""
-    tile = tid // BLOCK_SIZE
-    local = tid - tile * BLOCK_SIZE
+def tile_pixel_of(tile: int, local: int, tiles_x: int):
+    """Pixel (x, y) of thread ``local`` of the block that takes ``tile``, and the tile."""
     tile_y = tile // tiles_x
     tile_x = tile - tile_y * tiles_x
     return wp.vec3i(tile_x * TILE_SIZE + local % TILE_SIZE, tile_y * TILE_SIZE + local // TILE_SIZE, tile)
+
+
+@wp.func
+def tile_pixel(tid: int, tiles_x: int):
+    """Pixel (x, y) and tile index of thread ``tid`` when each tile is a block of BLOCK_SIZE threads."""
+    tile = tid // BLOCK_SIZE
+    return tile_pixel_of(tile, tid - tile * BLOCK_SIZE, tiles_x)
+
+
+@wp.func
+def chunk_tile(chunk: int, chunk_ends: wp.array(dtype=wp.int32)):
+    """The tile whose chunks hold ``chunk``: the first t with ``chunk_ends[t]`` > ``chunk``."""
+    lo = int(0)
+    hi = chunk_ends.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if chunk_ends[mid] > chunk:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
 
 
 @wp.func
@@ -167,88 +188,138 @@ def shape_alpha(shape: wp.vec4, extra: wp.vec4, px: float, py: float):
     return splat_alpha(wp.vec2(shape[0], shape[1]), wp.vec3(shape[2], shape[3], extra[0]), extra[1], px, py)
 
 
-@wp.kernel(enable_backward=False)
-def blend_forward_kernel(
-    tile_ranges: wp.array2d(dtype=wp.int32),
-    sorted_gauss_ids: wp.array(dtype=wp.int32),
-    means2d: wp.array(dtype=wp.vec2),
-    conics: wp.array(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    depths: wp.array(dtype=float),
-    background: wp.array(dtype=wp.vec3),
-    width: int,
-    height: int,
-    tiles_x: int,
-    image_out: wp.array2d(dtype=wp.vec3),
-    transmittance_out: wp.array2d(dtype=float),
-    depth_out: wp.array2d(dtype=float),
-    last_contributor_out: wp.array2d(dtype=wp.int32),
-):
-    """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel.
+def _blend_forward(chunked: bool):
+    """The blend's forward kernel; with ``chunked`` it also saves the checkpoints of the chunked
+    adjoint (which take registers: 56 a thread against 48 on an H100, four blocks an SM instead
+    of five), so that the forward of a render without them is the lean one."""
 
-    The tile's list is walked in batches of BLOCK_SIZE. On CUDA the block's threads (one tile) first
-    load the batch into shared memory together, one Gaussian per thread, and every pixel then reads
-    it from there; a pixel that turns opaque leaves the batch early and waits at the barrier, and
-    the block stops when all its pixels are opaque. On the CPU each pixel reads global memory.
-    """
-    tid = wp.tid()
-    pix = tile_pixel(tid, tiles_x)
-    local = tid % BLOCK_SIZE
-    x = pix[0]
-    y = pix[1]
-    px = float(x) + 0.5
-    py = float(y) + 0.5
-    start = tile_ranges[pix[2], 0]
-    end = tile_ranges[pix[2], 1]
-    staged = on_cuda()
-    done = int(0)
-    if x >= width or y >= height:
-        done = 1  # pixels outside the image only help load batches
+    @wp.kernel(enable_backward=False)
+    def blend_forward_kernel(
+        tile_ranges: wp.array2d(dtype=wp.int32),
+        sorted_gauss_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        colors: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        depths: wp.array(dtype=float),
+        background: wp.array(dtype=wp.vec3),
+        width: int,
+        height: int,
+        tiles_x: int,
+        chunk_size: int,
+        image_out: wp.array2d(dtype=wp.vec3),
+        transmittance_out: wp.array2d(dtype=float),
+        depth_out: wp.array2d(dtype=float),
+        last_contributor_out: wp.array2d(dtype=wp.int32),
+        checkpoint_color_out: wp.array2d(dtype=wp.vec4),
+        checkpoint_depth_out: wp.array2d(dtype=float),
+        tile_last_out: wp.array(dtype=wp.int32),
+    ):
+        """Colour (over ``background[0]``), final transmittance, weighted depth sum and last contributor per pixel.
 
-    transmittance = float(1.0)
-    color = wp.vec3(0.0, 0.0, 0.0)
-    depth = float(0.0)
-    last = start - 1
-    batch = start
-    while batch < end:
-        count = wp.min(BLOCK_SIZE, end - batch)
-        if staged != 0:
-            if block_count(done) >= BLOCK_SIZE:
+        The tile's list is walked in batches of BLOCK_SIZE. On CUDA the block's threads (one tile) first
+        load the batch into shared memory together, one Gaussian per thread, and every pixel then reads
+        it from there; a pixel that turns opaque leaves the batch early and waits at the barrier, and
+        the block stops when all its pixels are opaque. On the CPU each pixel reads global memory.
+
+        For the chunked adjoint (``chunk_size`` > 0, a multiple of BLOCK_SIZE; 0: none of this, and the
+        last three outputs may be None): at each list position p = start + c * chunk_size (c >= 1) that
+        a pixel reaches still compositing, its colour so far and transmittance (r, g, b, T) go to
+        ``checkpoint_color_out[p // chunk_size + tile, local]`` and its depth sum to
+        ``checkpoint_depth_out`` alike (rows: pairs // chunk_size + tiles; the row is unique to the
+        tile and boundary); ``tile_last_out[tile]`` (-1 before) becomes the largest last contributor
+        of the tile's pixels.
+        """
+        tid = wp.tid()
+        pix = tile_pixel(tid, tiles_x)
+        local = tid % BLOCK_SIZE
+        x = pix[0]
+        y = pix[1]
+        px = float(x) + 0.5
+        py = float(y) + 0.5
+        start = tile_ranges[pix[2], 0]
+        end = tile_ranges[pix[2], 1]
+        staged = on_cuda()
+        done = int(0)
+        if x >= width or y >= height:
+            done = 1  # pixels outside the image only help load batches
+
+        transmittance = float(1.0)
+        color = wp.vec3(0.0, 0.0, 0.0)
+        depth = float(0.0)
+        last = start - 1
+        batch = start
+        while batch < end:
+            count = wp.min(BLOCK_SIZE, end - batch)
+            if staged != 0:
+                if block_count(done) >= BLOCK_SIZE:
+                    break
+                if local < count:
+                    stage_gaussian(local, sorted_gauss_ids[batch + local], means2d, conics, colors, opacities, depths)
+                block_sync()
+            if wp.static(chunked) and done == 0 and batch > start:
+                if (batch - start) % chunk_size == 0:  # a chunk boundary, reached still compositing
+                    row = batch // chunk_size + pix[2]
+                    checkpoint_color_out[row, local] = wp.vec4(color[0], color[1], color[2], transmittance)
+                    checkpoint_depth_out[row, local] = depth
+            if done == 0:
+                for j in range(count):
+                    g = int(0)
+                    if staged == 0:
+                        g = sorted_gauss_ids[batch + j]
+                    shape = batch_field(staged, 0, j, g, means2d, conics, colors, opacities, depths)
+                    extra = batch_field(staged, 1, j, g, means2d, conics, colors, opacities, depths)
+                    alpha = shape_alpha(shape, extra, px, py)
+                    if alpha > 0.0:
+                        next_transmittance = transmittance * (1.0 - alpha)
+                        if next_transmittance < MIN_TRANSMITTANCE:
+                            done = 1
+                            break
+                        look = batch_field(staged, 2, j, g, means2d, conics, colors, opacities, depths)
+                        weight = alpha * transmittance
+                        color += weight * wp.vec3(look[0], look[1], look[2])
+                        depth += weight * look[3]
+                        transmittance = next_transmittance
+                        last = batch + j
+            if staged != 0:
+                block_sync()  # the batch is read before the next one overwrites it
+            elif done != 0:
                 break
-            if local < count:
-                stage_gaussian(local, sorted_gauss_ids[batch + local], means2d, conics, colors, opacities, depths)
-            block_sync()
-        if done == 0:
-            for j in range(count):
-                g = int(0)
-                if staged == 0:
-                    g = sorted_gauss_ids[batch + j]
-                shape = batch_field(staged, 0, j, g, means2d, conics, colors, opacities, depths)
-                extra = batch_field(staged, 1, j, g, means2d, conics, colors, opacities, depths)
-                alpha = shape_alpha(shape, extra, px, py)
-                if alpha > 0.0:
-                    next_transmittance = transmittance * (1.0 - alpha)
-                    if next_transmittance < MIN_TRANSMITTANCE:
-                        done = 1
-                        break
-                    look = batch_field(staged, 2, j, g, means2d, conics, colors, opacities, depths)
-                    weight = alpha * transmittance
-                    color += weight * wp.vec3(look[0], look[1], look[2])
-                    depth += weight * look[3]
-                    transmittance = next_transmittance
-                    last = batch + j
-        if staged != 0:
-            block_sync()  # the batch is read before the next one overwrites it
-        elif done != 0:
-            break
-        batch += BLOCK_SIZE
+            batch += BLOCK_SIZE
 
-    if x < width and y < height:
-        image_out[y, x] = color + transmittance * background[0]
-        transmittance_out[y, x] = transmittance
-        depth_out[y, x] = depth
-        last_contributor_out[y, x] = last
+        if x < width and y < height:
+            image_out[y, x] = color + transmittance * background[0]
+            transmittance_out[y, x] = transmittance
+            depth_out[y, x] = depth
+            last_contributor_out[y, x] = last
+        if wp.static(chunked):
+            tile_last = block_max_int(last)  # the block's (CUDA); the pixel's own on the CPU
+            if staged == 0 or local == 0:
+                wp.atomic_max(tile_last_out, pix[2], tile_last)
+
+    return blend_forward_kernel
+
+
+# Without checkpoints (``chunk_size`` must be 0; the last three outputs may be None), and with
+# them (``chunk_size`` > 0): ``rasterize`` launches the second for a chunked adjoint.
+blend_forward_kernel = _blend_forward(False)
+blend_forward_chunked_kernel = _blend_forward(True)
+
+
+@wp.kernel(enable_backward=False)
+def walk_chunks_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    tile_last: wp.array(dtype=wp.int32),
+    chunk_size: int,
+    chunks_out: wp.array(dtype=wp.int32),
+):
+    """Chunks of ``chunk_size`` list entries that the adjoint walks in each tile: its list from the
+    start up to the largest last contributor of its pixels (``tile_last``, from the forward pass),
+    0 when no pixel composites anything. Their inclusive prefix sum is the adjoint's
+    ``chunk_ends``."""
+    t = wp.tid()
+    walk = tile_last[t] - tile_ranges[t, 0] + 1
+    chunks_out[t] = wp.max((walk + chunk_size - 1) // chunk_size, 0)
 
 
 def _blend_backward(sums: bool, block: bool):
@@ -274,8 +345,14 @@ def _blend_backward(sums: bool, block: bool):
         width: int,
         height: int,
         tiles_x: int,
+        chunk_size: int,
+        chunk_ends: wp.array(dtype=wp.int32),
         transmittance: wp.array2d(dtype=float),
         last_contributor: wp.array2d(dtype=wp.int32),
+        image: wp.array2d(dtype=wp.vec3),
+        depth_sum: wp.array2d(dtype=float),
+        checkpoint_color: wp.array2d(dtype=wp.vec4),
+        checkpoint_depth: wp.array2d(dtype=float),
         grad_image: wp.array2d(dtype=wp.vec3),
         grad_alpha: wp.array2d(dtype=float),
         grad_depth: wp.array2d(dtype=float),
@@ -300,15 +377,39 @@ def _blend_backward(sums: bool, block: bool):
         contributor of any of them down to the tile's start; a lane whose pixel the Gaussian does not
         touch adds zeros. Each Gaussian's gradients are summed over the warp in registers and one lane
         adds them to global memory (``_lanes``), so no lane may leave the loop early.
+
+        Chunked (``chunk_ends`` not empty): block b walks chunk b of the table instead of a whole
+        tile. ``chunk_ends`` [tiles] is the inclusive prefix sum of the tiles' chunks, the pieces
+        [start + c * chunk_size, start + (c + 1) * chunk_size) of the list up to the tile's last
+        contributor (``walk_chunks_kernel``); blocks past the last chunk leave at once. A pixel that
+        composites past its chunk starts the walk from the forward pass's checkpoint at the chunk's
+        end: T there, and S = (image - T_final background) - the colour composited before it (and
+        the depth sum alike). ``image``, ``depth_sum`` and the checkpoints are the forward pass's
+        (None, with ``chunk_ends`` empty: one block per tile, walking all of it).
         """
         tid = wp.tid()
-        pix = tile_pixel(tid, tiles_x)
         local = tid % BLOCK_SIZE
+        chunk = tid // BLOCK_SIZE
+        tile = chunk
+        chunked = chunk_ends.shape[0]
+        if chunked > 0:
+            if chunk >= chunk_ends[chunked - 1]:
+                return  # past the last chunk: the whole block leaves before any barrier
+            tile = chunk_tile(chunk, chunk_ends)
+        pix = tile_pixel_of(tile, local, tiles_x)
         x = pix[0]
         y = pix[1]
         px = float(x) + 0.5
         py = float(y) + 0.5
-        start = tile_ranges[pix[2], 0]
+        start = tile_ranges[tile, 0]
+        first = start  # this block walks [first, stop) of the tile's list
+        stop = tile_ranges[tile, 1]
+        if chunked > 0:
+            before = int(0)
+            if tile > 0:
+                before = chunk_ends[tile - 1]
+            first = start + (chunk - before) * chunk_size
+            stop = wp.min(first + chunk_size, stop)
 
         final_transmittance = float(1.0)
         g_color = wp.vec3(0.0, 0.0, 0.0)
@@ -333,6 +434,17 @@ def _blend_backward(sums: bool, block: bool):
         zero4 = wp.vec4(0.0, 0.0, 0.0, 0.0)
         behind_color = wp.vec3(0.0, 0.0, 0.0)  # S: colour composited behind Gaussian i
         behind_depth = float(0.0)
+        if last >= stop:  # the pixel composites past this chunk: start from the checkpoint at its end
+            row = stop // chunk_size + tile
+            checkpoint = checkpoint_color[row, local]
+            t = checkpoint[3]
+            composited = image[y, x] - final_transmittance * background[0]
+            behind_color = composited - wp.vec3(checkpoint[0], checkpoint[1], checkpoint[2])
+            if wp.static(sums):
+                behind_depth = depth_sum[y, x] - checkpoint_depth[row, local]
+            last = stop - 1
+        if last < first:
+            last = first - 1  # nothing of this chunk
         # The list is walked back to front in batches of BLOCK_SIZE from the last contributor of any
         # pixel of the block (on CUDA each batch is loaded into shared memory together, as in the forward pass);
         # within a batch a warp starts at the last contributor of any of its lanes, so all its lanes
@@ -341,8 +453,8 @@ def _blend_backward(sums: bool, block: bool):
         staged = on_cuda()
         warp_last = lane_max_int(last)
         batch = block_max_int(warp_last)  # index of the batch's first (back-most) Gaussian
-        while batch >= start:
-            count = wp.min(BLOCK_SIZE, batch - start + 1)
+        while batch >= first:
+            count = wp.min(BLOCK_SIZE, batch - first + 1)
             if staged != 0:
                 if local < count:
                     stage_gaussian(local, sorted_gauss_ids[batch - local], means2d, conics, colors, opacities, depths)
