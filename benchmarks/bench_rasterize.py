@@ -34,6 +34,8 @@ import cdcgs
 import cdcgs.render
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from kernel_options import add_kernel_options, check_kernel_options, kernel_options
 
 DEFAULT_WORKLOAD = os.path.join(HERE, "..", "..", "shared", "bench", "workload.py")
 
@@ -167,29 +169,18 @@ def main(argv=None):
         metavar="M",
         help="also time cdcgs into ceil(M x count) slots without the count read (M >= 1), e.g. 1.25 2",
     )
-    parser.add_argument(
-        "--blend-backward",
-        choices=("block", "warp"),
-        default=None,
-        help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
-    )
-    parser.add_argument(
-        "--blend-chunk",
-        type=int,
-        default=None,
-        help="list entries per block of the blend adjoint, a multiple of 256 (0: whole tiles; "
-        "cdcgs.render.BLEND_CHUNK; default: as it is)",
-    )
+    add_kernel_options(parser)
     parser.add_argument("--out", default=None, help="write the results as JSON here")
     args = parser.parse_args(argv)
-    if args.blend_chunk is not None and (args.blend_chunk < 0 or args.blend_chunk % 256):
-        parser.error(f"--blend-chunk must be 0 or a multiple of 256, got {args.blend_chunk}")
-    if args.blend_backward:
-        cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward
-    if args.blend_chunk is not None:
-        cdcgs.render.BLEND_CHUNK = args.blend_chunk
+    check_kernel_options(parser, args)
     if any(not math.isfinite(m) or m < 1.0 for m in args.capacity):
         parser.error(f"--capacity: margins must be at least 1 (room for every pair), got {args.capacity}")
+    with kernel_options(args):
+        return measure(args)
+
+
+def measure(args):
+    """Time every renderer at every size of ``args``, print the table and write the JSON."""
     device = torch.device(args.device)
     workload = load_workload(args.workload)
     rows = []

@@ -52,6 +52,7 @@ import torch
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
+from kernel_options import add_kernel_options, check_kernel_options, kernel_options
 from run import STAGES, stage_of
 
 import cdcgs
@@ -460,19 +461,7 @@ def main(argv=None) -> int:
         default=None,
         help="the SH adjoint's CUDA kernel (cdcgs.render.SH_BACKWARD_CUDA; default: as it is)",
     )
-    parser.add_argument(
-        "--blend-backward",
-        choices=("block", "warp"),
-        default=None,
-        help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
-    )
-    parser.add_argument(
-        "--blend-chunk",
-        type=int,
-        default=None,
-        help="list entries per block of the blend adjoint, a multiple of 256 (0: whole tiles; "
-        "cdcgs.render.BLEND_CHUNK; default: as it is)",
-    )
+    add_kernel_options(parser)
     parser.add_argument(
         "--rectangles", action="store_true", help="bin each Gaussian into its whole rectangle (no exact footprints)"
     )
@@ -492,8 +481,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
-    if args.blend_chunk is not None and (args.blend_chunk < 0 or args.blend_chunk % 256):
-        parser.error(f"--blend-chunk must be 0 or a multiple of 256, got {args.blend_chunk}")
+    check_kernel_options(parser, args)
     args.sync_free = args.sync_free or args.cuda_graph
     ask_for_expandable_segments()  # before CUDA allocates: as `cdcgs train` runs
     if not os.path.isdir(args.data):
@@ -508,19 +496,13 @@ def main(argv=None) -> int:
     if args.rectangles:
         cdcgs.render.start_binning = rectangles
     sh_backward = cdcgs.render.SH_BACKWARD_CUDA
-    blend_backward = cdcgs.render.BLEND_BACKWARD_CUDA
     cdcgs.render.SH_BACKWARD_CUDA = args.sh_backward or sh_backward
-    cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward or blend_backward
-    blend_chunk = cdcgs.render.BLEND_CHUNK
-    if args.blend_chunk is not None:
-        cdcgs.render.BLEND_CHUNK = args.blend_chunk
     try:
-        rows = [measure(args, count) for count in args.gaussians]
+        with kernel_options(args):
+            rows = [measure(args, count) for count in args.gaussians]
     finally:
         cdcgs.render.start_binning = exact
         cdcgs.render.SH_BACKWARD_CUDA = sh_backward
-        cdcgs.render.BLEND_BACKWARD_CUDA = blend_backward
-        cdcgs.render.BLEND_CHUNK = blend_chunk
     machine = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
     print_report(rows, machine)
     if args.out:

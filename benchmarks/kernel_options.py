@@ -1,0 +1,44 @@
+"""The renderer's kernel choices as options of a benchmark: ``--blend-backward`` and ``--blend-chunk``
+(``cdcgs.render.BLEND_BACKWARD_CUDA`` and ``BLEND_CHUNK``), for timing one against another."""
+
+from __future__ import annotations
+
+import contextlib
+
+import cdcgs.render
+from cdcgs.kernels import BLOCK_SIZE
+
+
+def add_kernel_options(parser) -> None:
+    parser.add_argument(
+        "--blend-backward",
+        choices=("block", "warp"),
+        default=None,
+        help="how the blend adjoint adds its sums on CUDA (cdcgs.render.BLEND_BACKWARD_CUDA; default: as it is)",
+    )
+    parser.add_argument(
+        "--blend-chunk",
+        type=int,
+        default=None,
+        help=f"list entries per block of the blend adjoint, a multiple of {BLOCK_SIZE} (0: whole tiles; "
+        "cdcgs.render.BLEND_CHUNK; default: as it is)",
+    )
+
+
+def check_kernel_options(parser, args) -> None:
+    if args.blend_chunk is not None and (args.blend_chunk < 0 or args.blend_chunk % BLOCK_SIZE):
+        parser.error(f"--blend-chunk must be 0 or a multiple of {BLOCK_SIZE}, got {args.blend_chunk}")
+
+
+@contextlib.contextmanager
+def kernel_options(args):
+    """The renderer with ``args``' choices for the duration, as it was after."""
+    before = cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK
+    if args.blend_backward:
+        cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward
+    if args.blend_chunk is not None:
+        cdcgs.render.BLEND_CHUNK = args.blend_chunk
+    try:
+        yield
+    finally:
+        cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK = before
