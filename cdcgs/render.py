@@ -75,7 +75,8 @@ BLEND_BACKWARD_CUDA = "block"
 # entries, each its own block, starting from per-pixel checkpoints that the forward pass saves at
 # the chunk boundaries (rows of 20 bytes a pixel, pairs / BLEND_CHUNK + tiles of them). A tile
 # whose walk is ten times the mean holds the whole launch up (benchmarks/tile_balance.py);
-# chunks spread it over the GPU. Not yet timed on a GPU: 0 until it is.
+# chunks spread it over the GPU. Not yet timed on a GPU: 0 until it is. (With chunks the image is
+# saved for the backward pass, so changing it in place before then is an autograd error.)
 BLEND_CHUNK = 0
 
 # The most slots ``rasterize(capacity=...)`` takes: the sort holds twice as many keys, and Warp's
@@ -480,7 +481,7 @@ class _Blend(torch.autograd.Function):
         transmittance = means2d.new_empty(height, width)
         depth_sum = means2d.new_empty(height, width)
         last = torch.empty(height, width, dtype=torch.int32, device=device)
-        chunk = _blend_chunk()
+        chunk = _blend_chunk() if any(ctx.needs_input_grad[:5]) else 0  # checkpoints only for a backward
         num_tiles = bins.tiles_x * bins.tiles_y
         checkpoints = (None, None, None)
         if chunk:  # the colour and transmittance at each chunk boundary, and each tile's walk

@@ -227,3 +227,34 @@ def test_the_default_on_a_gpu_is_the_graph_training(tiny_scene, tmp_path, monkey
     default, result = train_briefly(tiny_scene, tmp_path / "default", "3dgs", SHORT, background="white")
     assert result["cuda_graph"]["replayed_steps"] > 0 and default.lookahead is not None
     assert_same_model(given, default)
+
+
+def test_a_resumed_run_keeps_its_graph_choice():
+    """Left at none, ``cuda_graph`` takes the resumed run's value: a run saved before the graphs
+    became the default (false) goes on without them, one saved at none decides again, and a value
+    given now wins."""
+    from cdcgs.train.config import TrainConfig, config_to_dict, resolve_defaults
+    from cdcgs.train.strategies import make_strategy
+
+    strategy = make_strategy("3dgs", {})
+    for saved, given, expected in ((False, None, False), (None, None, None), (True, None, True), (False, True, True)):
+        before = config_to_dict(TrainConfig(cuda_graph=saved))
+        assert resolve_defaults(TrainConfig(cuda_graph=given), strategy, before).cuda_graph is expected
+    assert resolve_defaults(TrainConfig(), strategy, {}).cuda_graph is None, "a checkpoint without the key"
+
+
+def test_a_gpu_without_warps_memory_pool_is_refused(monkeypatch):
+    """A capture allocates the step's sort and scan buffers from Warp's memory pool: on a GPU
+    without one the steps are not replayed (the reason names the pool)."""
+    import types
+
+    import warp as wp
+
+    import cdcgs.train.graph as graph
+
+    monkeypatch.setattr(wp, "device_from_torch", lambda device: device)
+    monkeypatch.setattr(wp, "is_mempool_supported", lambda device: False)
+    trainer = types.SimpleNamespace(device=torch.device("cuda", 0), config=None)
+    for default in (False, True):
+        why, _ = graph.graph_refusal(trainer, default=default)
+        assert "memory pool" in why

@@ -257,7 +257,7 @@ def _blend_forward(chunked: bool):
                 if local < count:
                     stage_gaussian(local, sorted_gauss_ids[batch + local], means2d, conics, colors, opacities, depths)
                 block_sync()
-            if wp.static(chunked) and done == 0 and batch > start:
+            if wp.static(chunked) and chunk_size > 0 and done == 0 and batch > start:
                 if (batch - start) % chunk_size == 0:  # a chunk boundary, reached still compositing
                     row = batch // chunk_size + pix[2]
                     checkpoint_color_out[row, local] = wp.vec4(color[0], color[1], color[2], transmittance)

@@ -195,7 +195,7 @@ class TrainConfig:
     )
     cuda_graph: bool | None = option(
         None,
-        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view) (none: on wherever the training can take it on CUDA, else off, saying why)",
+        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view) (none: as the resumed run chose, else on wherever the training can take it on CUDA and off elsewhere, saying why)",
     )
     batch_size: int = option(
         1,
@@ -267,7 +267,7 @@ def batch_rule(config: TrainConfig) -> tuple[float, float, float]:
 
 def resolve_defaults(config: TrainConfig, strategy, saved: dict | None = None) -> TrainConfig:
     """``config`` with every option left at none (``init_opacity``, ``scale_rule``, ``init_scale``,
-    ``lr.opacity_logits``, ``optimizer``, ``resolution_schedule``) set to the value of the run
+    ``lr.opacity_logits``, ``optimizer``, ``resolution_schedule``, ``cuda_graph``) set to the value of the run
     being resumed (``saved``, its :func:`config_to_dict`), else to its preset's
     (:data:`cdcgs.train.presets.PRESET_TRAINING`), else to ``strategy``'s (its
     ``training_defaults`` dict), else to :data:`cdcgs.train.presets.TRAINING_DEFAULTS`: a resumed
@@ -286,9 +286,13 @@ def resolve_defaults(config: TrainConfig, strategy, saved: dict | None = None) -
     lr = config.lr
     if lr.opacity_logits is None:
         lr = dataclasses.replace(lr, opacity_logits=defaults["opacity_lr"])
+    # Steps replayed as CUDA graphs: left at none, as the resumed run chose (runs before this
+    # default saved false, and go on without them); a new run decides where it trains.
+    cuda_graph = saved.get("cuda_graph") if config.cuda_graph is None else config.cuda_graph
     return dataclasses.replace(
         config,
         lr=lr,
+        cuda_graph=cuda_graph,
         **{
             name: defaults[name] if getattr(config, name) is None else getattr(config, name)
             for name in ("init_opacity", "scale_rule", "init_scale", "optimizer", "resolution_schedule")

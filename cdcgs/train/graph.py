@@ -66,6 +66,11 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
     config = trainer.config
     if default and trainer.device.type != "cuda":
         return "replays steps on CUDA", f"this training runs on {trainer.device.type}"
+    if trainer.device.type == "cuda" and not wp.is_mempool_supported(wp.device_from_torch(trainer.device)):
+        return (
+            "needs Warp's memory pool on the GPU (the step's sorts and scans allocate inside the capture)",
+            "this GPU or driver has none",
+        )
     if trainer.ranks.distributed:
         return "trains on one process", "drop it for a torchrun launch of several"
     if any(getattr(callback, "renders_beside_training", False) for callback in trainer.callbacks):
@@ -286,7 +291,7 @@ class GraphSteps:
         for p, grad in zip(self._params, self._grads):
             state = optimizer.state[p]
             addresses = [x.data_ptr() for x in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
-            rows.append([*addresses, start, p.numel(), p.numel() // p.shape[0]])
+            rows.append([*addresses, start, p.numel(), p.numel() // p.shape[0] if p.shape[0] else 1])
             start += adam_quads(p.numel())
         self._table.copy_(torch.tensor(rows, dtype=torch.int64))
 
