@@ -45,7 +45,7 @@ from ..kernels._lookahead import select_camera_kernel
 from ..kernels.adam import adam_quads
 from ..kernels.projection import Camera
 from ..render import rasterize
-from .lookahead import READ_EVERY
+from .lookahead import READ_EVERY, halt_refusal
 from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
 __all__ = ["GraphSteps", "graph_refusal"]
@@ -71,21 +71,13 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
             "needs Warp's memory pool on the GPU (the step's sorts and scans allocate inside the capture)",
             "this GPU or driver has none",
         )
-    if trainer.ranks.distributed:
-        return "trains on one process", "drop it for a torchrun launch of several"
+    refusal = halt_refusal(config, trainer.strategy, trainer.ranks.distributed)
+    if refusal is not None:
+        return refusal
     if any(getattr(callback, "renders_beside_training", False) for callback in trainer.callbacks):
         return "captures steps, which a viewer's renders on another thread would run into", "drop --view"
-    if config.optimizer not in ("adam", "selective") or not isinstance(trainer.optimizer, FusedAdam):
-        return (
-            "launches FusedAdam itself and halts it on the device",
-            f"use --optimizer adam or selective, not {config.optimizer}",
-        )
-    if getattr(trainer.strategy, "complexity_schedule", None) == "online" and trainer.strategy.needs_complexity:
-        return (
-            "cannot take --complexity-schedule online, which adds every render to Γ with torch operations "
-            "that a halt does not stop",
-            "use the full schedule",
-        )
+    if not isinstance(trainer.optimizer, FusedAdam):
+        return "launches FusedAdam itself", "use --optimizer adam or selective"
     if config.batch_size != 1:
         return "captures a step of one view", f"drop --batch-size {config.batch_size}"
     if config.background == "random":

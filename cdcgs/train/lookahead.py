@@ -33,7 +33,25 @@ from .._interop import launch, warp_scope, wp_arg
 from ..kernels._lookahead import note_render_kernel
 from ..render import MAX_CAPACITY
 
-__all__ = ["FLOOR", "MARGIN", "READ_EVERY", "Halted", "Lookahead"]
+__all__ = ["FLOOR", "MARGIN", "READ_EVERY", "Halted", "Lookahead", "halt_refusal"]
+
+
+def halt_refusal(config, strategy, distributed: bool) -> tuple[str, str] | None:
+    """Why a training cannot render without reading its counts (``--sync-free``, and the steps
+    replayed as CUDA graphs, which build on it), and what to change: (why, what to change), or
+    None. A halt must stop every update until the host has read it, on one process."""
+    if distributed:
+        return "trains on one process", "drop it for a torchrun launch of several"
+    if config.optimizer not in ("adam", "selective"):
+        return f"halts Adam on the device, which --optimizer {config.optimizer} cannot", "use adam or selective"
+    if getattr(strategy, "complexity_schedule", None) == "online" and strategy.needs_complexity:
+        return (
+            "cannot be combined with --complexity-schedule online, which adds every render to Γ with torch "
+            "operations that a halt does not stop",
+            "use the full schedule",
+        )
+    return None
+
 
 # Slots of a view = its last count x (Gaussians now / Gaussians then) x MARGIN + FLOOR. The sort's
 # work grows with the slots; an overflow costs the iterations since the last read.

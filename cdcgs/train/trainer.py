@@ -28,7 +28,7 @@ from .evaluate import evaluate, lpips_metric
 from .graph import GraphSteps, graph_refusal
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
-from .lookahead import READ_EVERY, Lookahead
+from .lookahead import READ_EVERY, Lookahead, halt_refusal
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer, set_hyperparameters
@@ -359,18 +359,10 @@ class Trainer:
         config = self.config
         if not (config.sync_free or config.cuda_graph):
             return
-        name = "--cuda-graph" if config.cuda_graph else "--sync-free"
-        if self.ranks.distributed:
-            raise OptionError(f"{name} trains on one process: drop it for a torchrun launch of several")
-        if config.optimizer not in ("adam", "selective"):
-            raise OptionError(
-                f"{name} halts Adam on the device, which --optimizer {config.optimizer} cannot: use adam or selective"
-            )
-        if getattr(self.strategy, "complexity_schedule", None) == "online" and self.strategy.needs_complexity:
-            raise OptionError(
-                f"{name} cannot be combined with --complexity-schedule online, which adds every render to Γ "
-                "with torch operations that a halt does not stop (use the full schedule)"
-            )
+        refusal = halt_refusal(config, self.strategy, self.ranks.distributed)
+        if refusal is not None:
+            name = "--cuda-graph" if config.cuda_graph else "--sync-free"
+            raise OptionError(f"{name} {refusal[0]}: {refusal[1]}")
 
     def _scene_summary(self) -> dict:
         s = self.scene
