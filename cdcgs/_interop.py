@@ -22,6 +22,7 @@ __all__ = [
     "torch_allocators",
     "torch_tensor",
     "unpin_descriptor",
+    "warp_device",
     "warp_scope",
     "wp_arg",
     "wp_array",
@@ -75,6 +76,14 @@ def _warp_device(device: torch.device):
     """Warp's device of a torch device (kept: ``wp.device_from_torch`` parses its name)."""
     ensure_warp()
     return wp.device_from_torch(device)
+
+
+def warp_device(device: torch.device):
+    """Warp's device of a torch device; ``cuda`` without an ordinal is torch's current GPU (Warp
+    cannot map that name)."""
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    return _warp_device(device)
 
 
 def unpin_descriptor(descriptor) -> None:

@@ -39,7 +39,7 @@ import torch
 import warp as wp
 from torch.autograd.graph import increment_version
 
-from .._interop import launch, warp_scope, wp_arg
+from .._interop import launch, warp_device, warp_scope, wp_arg
 from ..errors import OptionError
 from ..kernels._lookahead import select_camera_kernel
 from ..kernels.adam import adam_quads
@@ -66,7 +66,7 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
     config = trainer.config
     if default and trainer.device.type != "cuda":
         return "replays steps on CUDA", f"this training runs on {trainer.device.type}"
-    if trainer.device.type == "cuda" and not wp.is_mempool_supported(wp.device_from_torch(trainer.device)):
+    if trainer.device.type == "cuda" and not wp.is_mempool_supported(warp_device(trainer.device)):
         return (
             "needs Warp's memory pool on the GPU (the step's sorts and scans allocate inside the capture)",
             "this GPU or driver has none",

@@ -16,6 +16,7 @@ import weakref
 
 import torch
 
+from .._interop import warp_device
 from ..complexity import ComplexityMaps
 from ..errors import InputError, NonFiniteError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
@@ -135,9 +136,7 @@ def held_memory(device: torch.device, peak_reserved: int) -> dict:
         return {"peak_gpu_memory_reserved_gb": None, "warp_mempool_peak_gb": None, "gpu_memory_in_use_gb": None}
     import warp as wp
 
-    if device.index is None:  # "cuda": Warp needs the ordinal
-        device = torch.device("cuda", torch.cuda.current_device())
-    wp_device = wp.device_from_torch(device)
+    wp_device = warp_device(device)
     pool = wp.get_mempool_used_mem_high(wp_device) if wp.is_mempool_enabled(wp_device) else 0
     free, total = torch.cuda.mem_get_info(device)
     return {
