@@ -164,3 +164,28 @@ def assert_same_model(a, b) -> None:
         state_p, state_q = a.optimizer.state[p["params"][0]], b.optimizer.state[q["params"][0]]
         assert float(state_p["step"]) == float(state_q["step"])
         assert torch.equal(state_p["exp_avg_sq"], state_q["exp_avg_sq"]), p["name"]
+
+
+def warp_without_ordinals(monkeypatch, ordinal: int) -> list:
+    """Stand-ins, so that a test of a CUDA path runs on the CPU: torch's current GPU is
+    ``ordinal``, and Warp's device_from_torch refuses ``cuda`` without an ordinal (as Warp 1.19
+    does), answers "cuda:K" otherwise and records what it was asked (the list returned).
+    cdcgs._interop's cache of Warp's answers is a fresh one for the test (the real one, untouched,
+    comes back after it)."""
+    import warp as wp
+
+    from cdcgs import _interop
+
+    monkeypatch.setattr(_interop, "_warp_device", functools.cache(_interop._warp_device.__wrapped__))
+    monkeypatch.setattr(_interop, "ensure_warp", lambda: None)
+    asked = []
+
+    def device_from_torch(device):
+        asked.append(device)
+        if device.index is None:
+            raise TypeError("no ordinal")
+        return f"cuda:{device.index}"
+
+    monkeypatch.setattr(wp, "device_from_torch", device_from_torch)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: ordinal)
+    return asked

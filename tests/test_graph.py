@@ -5,7 +5,16 @@ the counted one as two counted runs are."""
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, interrupt_at, tiny_config, train_briefly
+from helpers import (
+    DEFAULT_DEVICE,
+    ITERS,
+    SHORT,
+    assert_same_model,
+    interrupt_at,
+    tiny_config,
+    train_briefly,
+    warp_without_ordinals,
+)
 
 import cdcgs.train.lookahead as lookahead
 from cdcgs.errors import OptionError
@@ -150,6 +159,24 @@ def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_count
     assert abs(count["graph"] - count["counted"]) <= max(
         3 * abs(count["counted"] - count["again"]), 0.02 * count["counted"]
     ), count
+
+
+def test_the_memory_pool_check_asks_warp_for_an_indexed_device(monkeypatch):
+    """`--device auto` (and cuda) gives torch.device("cuda") without an index, which Warp's
+    device_from_torch cannot look up (every training on CUDA stopped at set-up once): the
+    refusal's memory-pool check passes the current ordinal. Stand-ins for the CUDA and Warp calls,
+    so this runs on the CPU."""
+    import types
+
+    import warp as wp
+
+    from cdcgs.train.graph import graph_refusal
+
+    asked = warp_without_ordinals(monkeypatch, 2)
+    monkeypatch.setattr(wp, "is_mempool_supported", lambda device: device != "cuda:2")
+    trainer = types.SimpleNamespace(device=torch.device("cuda"), config=None)
+    why, _ = graph_refusal(trainer, default=True)
+    assert asked == [torch.device("cuda", 2)] and "memory pool" in why
 
 
 def test_cuda_graph_refuses_the_viewer(tiny_scene, tmp_path, capsys):

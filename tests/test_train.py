@@ -7,7 +7,7 @@ import sys
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config, train_argv
+from helpers import DEFAULT_DEVICE, SHORT, interrupt_at, tiny_config, train_argv, warp_without_ordinals
 
 from cdcgs.cli import main as cli_main
 from cdcgs.errors import InputError
@@ -64,6 +64,9 @@ def test_training_improves_held_out_psnr_and_writes_outputs(tiny_scene, tmp_path
     assert len(os.listdir(out / "test_renders")) == 2
     history = json.load(open(out / "history.json"))
     assert [e["step"] for e in history["eval"]] == [100, 200, 250]
+    seconds = [e["seconds"] for e in history["train_seconds"]]  # the training time at each log point
+    assert [e["step"] for e in history["train_seconds"]] == history["step"]
+    assert seconds[0] > 0 and seconds == sorted(seconds) and seconds[-1] == metrics["train_seconds"]
     assert read_ply(out / "point_cloud.ply").means.shape[0] == metrics["num_gaussians"]
     held = ("peak_gpu_memory_reserved_gb", "warp_mempool_peak_gb", "gpu_memory_in_use_gb")
     if device == "cuda":  # the caching allocator holds at least what was allocated; the device more still
@@ -90,18 +93,9 @@ def test_held_memory_asks_warp_for_an_indexed_device(monkeypatch):
 
     from cdcgs.train.trainer import held_memory
 
-    asked = []
-
-    def device_from_torch(device):
-        asked.append(device)
-        if device.index is None:
-            raise TypeError("no ordinal")  # what Warp 1.19 does with "cuda"
-        return f"cuda:{device.index}"
-
-    monkeypatch.setattr(wp, "device_from_torch", device_from_torch)
+    asked = warp_without_ordinals(monkeypatch, 1)
     monkeypatch.setattr(wp, "is_mempool_enabled", lambda device: True)
     monkeypatch.setattr(wp, "get_mempool_used_mem_high", lambda device: 3_000_000_000)
-    monkeypatch.setattr(torch.cuda, "current_device", lambda: 1)
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (70_000_000_000, 80_000_000_000))
     held = held_memory(torch.device("cuda"), 5_000_000_000)
     assert asked == [torch.device("cuda", 1)]

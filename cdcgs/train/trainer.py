@@ -1007,6 +1007,8 @@ class Trainer:
             if logged:
                 for key, value in (("step", step), ("loss", loss), ("psnr", psnr_value), ("gaussians", self.model.num)):
                     self.history[key].append(value)
+                # the training time so far (a run resumed from an older checkpoint starts this list there)
+                self.history.setdefault("train_seconds", []).append({"step": step, "seconds": self.train_seconds})
                 memory = allocator_now(self.device)
                 if memory:  # a run resumed from an older checkpoint starts the timeline there
                     self.history.setdefault("gpu_memory", []).append({"step": step, **memory})
