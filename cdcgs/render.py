@@ -75,9 +75,11 @@ BLEND_BACKWARD_CUDA = "block"
 # entries, each its own block, starting from per-pixel checkpoints that the forward pass saves at
 # the chunk boundaries (rows of 20 bytes a pixel, pairs / BLEND_CHUNK + tiles of them). A tile
 # whose walk is ten times the mean holds the whole launch up (benchmarks/tile_balance.py);
-# chunks spread it over the GPU. Not yet timed on a GPU: 0 until it is. (With chunks the image is
-# saved for the backward pass, so changing it in place before then is an autograd error.)
-BLEND_CHUNK = 0
+# chunks spread it over the GPU. 256 by default: on an H100 the replayed step of a trained bonsai
+# model took 0.85x its time with whole tiles, and a training 0.85x (docs/benchmarks.md). (With
+# chunks the image is saved for the backward pass, so changing it in place before then is an
+# autograd error.)
+BLEND_CHUNK = 256
 
 # The most slots ``rasterize(capacity=...)`` takes: the sort holds twice as many keys, and Warp's
 # launches and sorts index with 32-bit integers.

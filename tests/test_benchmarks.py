@@ -150,7 +150,8 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "| ms per step (wall) |" in printed and "| Γ pass: ms per view (wall), one view at a time |" in printed
     # The chunked blend adjoint through a whole step (BLEND_CHUNK restored after), and a bad chunk refused.
-    assert profile_step.main([*argv, "--blend-chunk", "256"]) == 0 and cdcgs.render.BLEND_CHUNK == 0
+    default = cdcgs.render.BLEND_CHUNK
+    assert profile_step.main([*argv, "--blend-chunk", "512"]) == 0 and default == cdcgs.render.BLEND_CHUNK
     with pytest.raises(SystemExit):
         profile_step.main([*argv, "--blend-chunk", "100"])
     # 3DGS-MCMC's step (its noise and regularisers), at the profiled count as its budget.
