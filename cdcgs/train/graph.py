@@ -33,7 +33,9 @@ bit for bit (``tests/test_graph.py``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import time
 
 import torch
 import warp as wp
@@ -55,6 +57,12 @@ __all__ = ["GraphSteps", "graph_refusal"]
 # a slot is never rewritten before its copy has run.
 RING = 256
 assert READ_EVERY < RING
+
+# torch.cuda.graph's context hands every cached block back to the driver before it captures
+# (torch.cuda.empty_cache, and the pinned host cache too): a training captures after each of its
+# ~145 refinements, and the next refinement's tensors would come from cudaMalloc again. The capture
+# needs none of it; True takes torch's context instead, for comparison (benchmarks).
+FLUSH_CACHE_AT_CAPTURE = False
 
 
 def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
@@ -119,7 +127,9 @@ class GraphSteps:
         self.key = None
         self.capacity = 0
         self.captures = 0
+        self.capture_seconds = 0.0  # the host's time in the captures (recording and instantiating)
         self.replays = 0
+        self._stream = None  # the side stream that captures
         self._table = self._rates = self._grads = None
 
     # ----------------------------------------------------------------------------- when
@@ -198,15 +208,16 @@ class GraphSteps:
         if not self.cuda:
             self.key = key
             return
+        start = time.perf_counter()
         graph = torch.cuda.CUDAGraph()
-        # thread_local: CUDA calls of other threads (none of cdcgs's: --view is refused) do not break it
-        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+        with self._capturing(graph):
             stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
             wp.capture_begin(stream=stream, external=True)
             try:
                 self._body()
             finally:
                 wp.capture_end(stream=stream)
+        self.capture_seconds += time.perf_counter() - start
         self._grads = [p.grad for p in self._params]  # the graph's own memory: the table names it
         missing = [name for name, p in trainer.model.params.items() if p.grad is None]
         if missing:
@@ -214,6 +225,28 @@ class GraphSteps:
         self._fill_table()
         trainer.optimizer.zero_grad(set_to_none=True)
         self.graph, self.key = graph, key  # only a capture that succeeded is replayed
+
+    @contextlib.contextmanager
+    def _capturing(self, graph):
+        """Capture into ``graph`` on a side stream that follows the training's stream (as
+        torch.cuda.graph does, without its flush of the caches: FLUSH_CACHE_AT_CAPTURE). Errors
+        are thread_local: CUDA calls of other threads (none of cdcgs's: --view is refused) do not
+        break the capture."""
+        if FLUSH_CACHE_AT_CAPTURE:
+            with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+                yield
+            return
+        if self._stream is None:
+            self._stream = torch.cuda.Stream(self.device)
+        current = torch.cuda.current_stream(self.device)
+        self._stream.wait_stream(current)
+        with torch.cuda.stream(self._stream):
+            graph.capture_begin(capture_error_mode="thread_local")
+            try:
+                yield
+            finally:
+                graph.capture_end()
+        current.wait_stream(self._stream)
 
     def _tables_at(self, scale: int):
         """(every training view's camera on the device, the one-camera array the kernels read, the
@@ -294,4 +327,4 @@ class GraphSteps:
         self.capacity = 0
 
     def summary(self) -> dict:
-        return {"captures": self.captures, "replayed_steps": self.replays}
+        return {"captures": self.captures, "replayed_steps": self.replays, "capture_seconds": self.capture_seconds}
