@@ -33,7 +33,6 @@ bit for bit (``tests/test_graph.py``).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 
@@ -57,12 +56,6 @@ __all__ = ["GraphSteps", "graph_refusal"]
 # a slot is never rewritten before its copy has run.
 RING = 256
 assert READ_EVERY < RING
-
-# torch.cuda.graph's context hands every cached block back to the driver before it captures
-# (torch.cuda.empty_cache, and the pinned host cache too): a training captures after each of its
-# ~145 refinements, and the next refinement's tensors would come from cudaMalloc again. The capture
-# needs none of it; True takes torch's context instead, for comparison (benchmarks).
-FLUSH_CACHE_AT_CAPTURE = False
 
 
 def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
@@ -129,7 +122,6 @@ class GraphSteps:
         self.captures = 0
         self.capture_seconds = 0.0  # the host's time in the captures (recording and instantiating)
         self.replays = 0
-        self._stream = None  # the side stream that captures
         self._table = self._rates = self._grads = None
 
     # ----------------------------------------------------------------------------- when
@@ -210,7 +202,11 @@ class GraphSteps:
             return
         start = time.perf_counter()
         graph = torch.cuda.CUDAGraph()
-        with self._capturing(graph):
+        # torch's context empties torch's cache first (each capture follows a refinement that
+        # replaced the Gaussians): without that, a bonsai training reserved 65.7 GB against 4.7,
+        # in the same time. thread_local: CUDA calls of other threads (none of cdcgs's: --view is
+        # refused) do not break the capture.
+        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
             stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
             wp.capture_begin(stream=stream, external=True)
             try:
@@ -225,28 +221,6 @@ class GraphSteps:
         self._fill_table()
         trainer.optimizer.zero_grad(set_to_none=True)
         self.graph, self.key = graph, key  # only a capture that succeeded is replayed
-
-    @contextlib.contextmanager
-    def _capturing(self, graph):
-        """Capture into ``graph`` on a side stream that follows the training's stream (as
-        torch.cuda.graph does, without its flush of the caches: FLUSH_CACHE_AT_CAPTURE). Errors
-        are thread_local: CUDA calls of other threads (none of cdcgs's: --view is refused) do not
-        break the capture."""
-        if FLUSH_CACHE_AT_CAPTURE:
-            with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-                yield
-            return
-        if self._stream is None:
-            self._stream = torch.cuda.Stream(self.device)
-        current = torch.cuda.current_stream(self.device)
-        self._stream.wait_stream(current)
-        with torch.cuda.stream(self._stream):
-            graph.capture_begin(capture_error_mode="thread_local")
-            try:
-                yield
-            finally:
-                graph.capture_end()
-        current.wait_stream(self._stream)
 
     def _tables_at(self, scale: int):
         """(every training view's camera on the device, the one-camera array the kernels read, the
