@@ -682,3 +682,40 @@ def test_graph_step_says_it_needs_a_gpu():
 
     with pytest.raises(SystemExit, match="needs a CUDA GPU"):
         graph_step.main(["--data", "unused"])
+
+
+def test_time_split_adds_the_spans_by_hand(tmp_path, capsys):
+    """history.json's train_seconds at steps 50..300 (every 50): spans to 100, 200 and the last
+    step (300); --at 1000 is past the run and 150 not a span's end unless asked. Then a folder
+    without a history is refused by name."""
+    import time_split
+
+    run = tmp_path / "run"
+    run.mkdir()
+    steps = [50, 100, 150, 200, 250, 300]
+    seconds = [0.5, 0.7, 1.0, 1.4, 1.5, 1.6]
+    history = {
+        "step": steps,
+        "gaussians": [10, 20, 30, 40, 40, 40],
+        "train_seconds": [{"step": s, "seconds": t} for s, t in zip(steps, seconds)],
+    }
+    (run / "history.json").write_text(json.dumps(history))
+    metrics = {
+        "train_seconds": 1.6,
+        "refine_seconds": 0.3,
+        "gamma_seconds": 0.0,
+        "cuda_graph": {"capture_seconds": 0.1},
+    }
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    out = tmp_path / "split.json"
+    assert time_split.main([str(run), "--at", "100", "200", "1000", "--out", str(out)]) == 0
+    spans = json.loads(out.read_text())[0]["spans"]
+    assert [(s["from"], s["to"], s["gaussians"]) for s in spans] == [(0, 100, 20), (100, 200, 40), (200, 300, 40)]
+    assert [s["seconds"] for s in spans] == pytest.approx([0.7, 0.7, 0.2])
+    assert [s["ms_per_iteration"] for s in spans] == pytest.approx([7.0, 7.0, 2.0])
+    printed = capsys.readouterr().out
+    assert "| 100–200 | 0.7 s (7.00 ms, 0.00M) |" in printed and "| captures | 0.1 s |" in printed
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit):
+        time_split.main([str(tmp_path / "empty")])
+    assert "has no history.json" in capsys.readouterr().err
