@@ -21,6 +21,7 @@ import torch
 import warp as wp
 
 from ._interop import launch, warp_scope, wp_arg
+from .errors import NonFiniteError
 from .kernels._constants import BLOCK_SIZE
 from .kernels.blend import MAX_EXACT, MAX_RACY_KEEP, MAX_RACY_RANK, W_MAX_ALPHA, W_MAX_WEIGHT, complexity_kernel
 
@@ -274,15 +275,38 @@ def complexity_over_views(
     projections alive at once); with finished ones, one view at a time. The same Γ either way:
     the views are measured in the same order.
 
+    An info binned into slots (``bin_view(..., capacity=...)``, its ``pending`` flags set) reads
+    nothing back: the flags of all such views are read once, after the last view. When any
+    view's pairs overflowed its slots, its lists were incomplete and the pass is taken again with
+    ``bins(i, counted=True)``, which must read every count; an input that held NaN or inf raises
+    NonFiniteError, as a counted view does at once.
+
     ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
     ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
     of several processes): each bins the views ``rank``, ``rank + world``, ... and the
     processes' sums or maxima are reduced, so every process gets the Γ of all views.
     """
-    accumulator = ViewComplexity(num_gaussians, device, **options)
-    seed = accumulator.views_added
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     indices = list(range(rank, len(maps), world))
+    accumulator, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options)
+    if slotted and _overflowed(slotted):
+        accumulator, _ = _measure_views(
+            lambda index: bins(index, counted=True), maps, indices, num_gaussians, device, options
+        )
+    if world > 1:
+        if accumulator.view_aggregation == "max":
+            ranks.all_reduce_(accumulator.total, "max")
+        else:
+            ranks.all_reduce_(accumulator.total)
+            ranks.all_reduce_(accumulator.views_seen)
+    return accumulator.result()
+
+
+def _measure_views(bins, maps, indices, num_gaussians, device, options):
+    """(the accumulator of ``indices``' views, the (flags, names) of those binned into slots)."""
+    accumulator = ViewComplexity(num_gaussians, device, **options)
+    seed = accumulator.views_added
+    slotted = []
 
     def started(position: int):
         return bins(indices[position]) if position < len(indices) else None
@@ -292,13 +316,20 @@ def complexity_over_views(
         pending = hasattr(current, "finish")
         following = started(position + 1) if pending else None  # queued before this view's count is read
         info = current.finish() if pending else current
+        if getattr(info, "pending", None) is not None:
+            slotted.append((info.pending, info._pending_names))
         accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
         accumulator.add(info, maps[index])
         current = following if pending else started(position + 1)
-    if world > 1:
-        if accumulator.view_aggregation == "max":
-            ranks.all_reduce_(accumulator.total, "max")
-        else:
-            ranks.all_reduce_(accumulator.total)
-            ranks.all_reduce_(accumulator.views_seen)
-    return accumulator.result()
+    return accumulator, slotted
+
+
+def _overflowed(slotted) -> bool:
+    """One read of the flags of the views binned into slots: NonFiniteError for an input that held
+    NaN or inf (the first such view's), else whether any view's pairs overflowed its slots."""
+    rows = torch.stack([flags for flags, _ in slotted]).tolist()
+    for row, (_, names) in zip(rows, slotted):
+        for name, bad in zip(names, row):
+            if bad:
+                raise NonFiniteError(name)
+    return any(row[-2] for row in rows)

@@ -874,13 +874,7 @@ def rasterize(
         if not all(math.isfinite(v) for v in values):
             raise NonFiniteError("background")
         background = means.new_tensor(values)
-    if capacity is not None and (
-        isinstance(capacity, bool) or not isinstance(capacity, int) or not 1 <= capacity <= MAX_CAPACITY
-    ):
-        raise ValueError(
-            f"capacity must be a positive int up to {MAX_CAPACITY}, slots for the view's (tile, Gaussian) pairs; "
-            f"got {capacity!r}"
-        )
+    _check_capacity(capacity)
     prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
     width, height = prepared.width, prepared.height
 
@@ -934,6 +928,16 @@ def rasterize(
         if device.type == "cuda":
             info._pending_stream = torch.cuda.current_stream(device)
     return image, alpha, info
+
+
+def _check_capacity(capacity) -> None:
+    if capacity is not None and (
+        isinstance(capacity, bool) or not isinstance(capacity, int) or not 1 <= capacity <= MAX_CAPACITY
+    ):
+        raise ValueError(
+            f"capacity must be a positive int up to {MAX_CAPACITY}, slots for the view's (tile, Gaussian) pairs; "
+            f"got {capacity!r}"
+        )
 
 
 def _info(width, height, projection, bins, colors, last, transmittance, depth, absgrad) -> RasterizeInfo:
@@ -1021,6 +1025,12 @@ def start_bin_view(
     binning and returns at once; ``.finish()`` on the result reads the intersection count and
     returns the view's :class:`RasterizeInfo`. Same arguments and errors as :func:`bin_view` (the
     non-finite ones from ``finish``)."""
+    return PendingBins(*_start_view(means, quats, scales, opacities, camera, antialiased))
+
+
+def _start_view(means, quats, scales, opacities, camera, antialiased):
+    """The checks, the projection and the first half of the binning of a view: (camera,
+    projection, binning start, finiteness flags, the checked names)."""
     means = _check_tensor("means", means, (None, 3), None)
     device = means.device
     n = means.shape[0]
@@ -1041,7 +1051,7 @@ def start_bin_view(
         projection = _project(*checked.values(), camera, antialiased, nonfinite)
         means2d, conics, depths, composited_opacities, radii = projection
         start = _start_bin(means2d, radii, depths, conics, composited_opacities, camera.width, camera.height)
-        return PendingBins(camera, projection, start, nonfinite, list(checked))
+    return camera, projection, start, nonfinite, list(checked)
 
 
 @torch.no_grad()
@@ -1053,6 +1063,7 @@ def bin_view(
     *,
     camera: PreparedCamera,
     antialiased: bool = False,
+    capacity: int | None = None,
 ) -> RasterizeInfo:
     """The projection and the depth-sorted tile lists of one view, without colours or an image.
 
@@ -1060,9 +1071,26 @@ def bin_view(
     :func:`cdcgs.complexity.gaussian_complexity`): a render less its colours and its blend, and
     without autograd. The arguments are :func:`rasterize`'s, the camera prepared. The returned
     info's ``colors``, ``last_contributor``, ``transmittance`` and ``depth`` are None.
+    ``capacity``: as :func:`rasterize`'s, the pairs binned into that many slots without reading
+    their count; ``info.check()`` (or its ``pending`` flags read later) then says whether they fit
+    and whether an input held NaN or inf, and the lists are wrong when they did not fit.
 
     Raises:
         ValueError: as :func:`rasterize`: an argument of the wrong type, dtype, shape or device,
-            non-finite values (naming the tensor), an empty scene, a camera that is not prepared.
+            non-finite values (naming the tensor; with ``capacity``, from ``info.check()``), an
+            empty scene, a camera that is not prepared, a capacity out of range.
     """
-    return start_bin_view(means, quats, scales, opacities, camera=camera, antialiased=antialiased).finish()
+    if capacity is None:
+        return start_bin_view(means, quats, scales, opacities, camera=camera, antialiased=antialiased).finish()
+    _check_capacity(capacity)
+    camera, projection, start, nonfinite, names = _start_view(means, quats, scales, opacities, camera, antialiased)
+    with _warp_scope(projection[0].device):
+        bins, overflow = finish_binning_within(start, capacity)
+    info = _info(camera.width, camera.height, projection, bins, None, None, None, None, {})
+    info.pending, info._pending_names = (
+        torch.cat([nonfinite, _torch(overflow), _torch(start.offsets)[-1:]]),
+        tuple(names),
+    )
+    if info.pending.device.type == "cuda":
+        info._pending_stream = torch.cuda.current_stream(info.pending.device)
+    return info

@@ -308,3 +308,51 @@ def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device,
     rtol = 1e-5 if sums and device == "cuda" else 0
     torch.testing.assert_close(got, expected, atol=0, rtol=rtol)
     torch.testing.assert_close(one_at_a_time, expected, atol=0, rtol=rtol)
+
+
+def test_the_gamma_pass_bins_into_slots_reads_once_and_counts_again_after_an_overflow(device):
+    """Views binned into slots (bin_view(capacity=...)): the same lists and Γ as counted ones,
+    nothing read back until the pass's end. When one view's slots are too few, its lists are
+    incomplete and the pass is taken again with bins(i, counted=True): the counted Γ again. NaN in
+    an input raises NonFiniteError at the end of the pass; a capacity out of range is refused."""
+    scene = make_scene(200, 40, 30, sh_degree=0, seed=6)
+    tensors = [t.to(device) for t in scene.tensors()[:4]]
+    eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5)]
+    cameras = [prepare_camera(look_at(eye, (0.0, 0.0, 0.0)), scene.K, 40, 30) for eye in eyes]
+    g = torch.Generator().manual_seed(7)
+    maps = [(torch.rand(30, 40, generator=g) * 255).to(torch.uint8).to(device) for _ in eyes]
+    counts = [bin_view(*tensors, camera=camera).num_intersections for camera in cameras]
+    assert min(counts) > 100
+    expected = complexity_over_views(lambda i: bin_view(*tensors, camera=cameras[i]), maps, 200, device)
+    assert (expected > 0).sum() > 30
+
+    def slotted(slots, inputs=tensors):
+        calls = []
+
+        def bins(index, counted=False):
+            calls.append((index, counted))
+            if counted:
+                return bin_view(*inputs, camera=cameras[index])
+            if device == "cuda":  # binned into slots without a blocking copy or a read of the device
+                torch.cuda.set_sync_debug_mode("error")
+            try:
+                return bin_view(*inputs, camera=cameras[index], capacity=slots[index])
+            finally:
+                if device == "cuda":
+                    torch.cuda.set_sync_debug_mode("default")
+
+        return bins, calls
+
+    bins, calls = slotted([count + 7 for count in counts])
+    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device), expected, atol=0, rtol=0)
+    assert calls == [(0, False), (1, False), (2, False)]
+    bins, calls = slotted([counts[0], counts[1] - 1, counts[2]])  # view 1 overflows by one pair
+    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device), expected, atol=0, rtol=0)
+    assert calls == [(0, False), (1, False), (2, False), (0, True), (1, True), (2, True)]
+    bad = [t.clone() for t in tensors]
+    bad[0][5, 1] = float("nan")
+    bins, _ = slotted(counts, bad)
+    with pytest.raises(NonFiniteError, match="means"):
+        complexity_over_views(bins, maps, 200, device)
+    with pytest.raises(ValueError, match="capacity"):
+        bin_view(*tensors, camera=cameras[0], capacity=0)

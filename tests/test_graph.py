@@ -61,6 +61,25 @@ def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monke
 
 
 @CPU_ONLY
+@pytest.mark.parametrize("tight", [False, True], ids=["slots", "slots-of-the-last-count"])
+def test_the_gamma_pass_bins_into_slots_and_counts_again_after_an_overflow(tiny_scene, tmp_path, monkeypatch, tight):
+    """cdc's Γ passes in a replayed training bin each view whose count the training knows into
+    slots, reading nothing back until the pass's end. With slots of exactly the last count some
+    views overflow and the pass is taken again, every count read. Either way the run is the one
+    that reads every count."""
+    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", "cdc", SHORT, background="white")
+    if tight:
+        monkeypatch.setattr(lookahead, "MARGIN", 1.0)
+        monkeypatch.setattr(lookahead, "FLOOR", 0)
+    graphed, result = train_briefly(tiny_scene, tmp_path / "graph", "cdc", SHORT, background="white", cuda_graph=True)
+    monkeypatch.undo()
+    assert_same_model(counted, graphed)
+    views = result["sync_free"]
+    assert views["gamma_views_within"] > 0, views
+    assert (views["gamma_views_counted_again"] > 0) == tight, views
+
+
+@CPU_ONLY
 def test_an_interrupted_graph_training_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
     """Stopped by a signal in a replayed stretch and resumed: the run the uninterrupted one is (the
     checkpoint holds Adam's step counts as the replays advanced them; the graph is captured anew)."""

@@ -91,6 +91,8 @@ class Lookahead:
         self.renders = {"counted": 0, "within": 0}
         self.rewinds = 0
         self.redone = 0  # iterations taken again
+        # the Γ passes' views (CDC-GS): binned into slots, reading their count, read again after an overflow
+        self.gamma_views = {"within": 0, "counted": 0, "counted_again": 0}
 
     def capacity(self, view: int, gaussians: int, scale: int = 1) -> int | None:
         """Slots for ``view`` rendered at 1/``scale`` with ``gaussians`` Gaussians, or None: read
@@ -152,11 +154,14 @@ class Lookahead:
         self._known.clear()
 
     def summary(self) -> dict:
-        """metrics.json's account: renders that read their count and that did not, halts, and the
-        iterations taken again."""
-        return {
+        """metrics.json's account: renders that read their count and that did not, halts, the
+        iterations taken again and, where Γ passes ran, how their views were binned."""
+        summary = {
             "renders_counted": self.renders["counted"],
             "renders_within_capacity": self.renders["within"],
             "rewinds": self.rewinds,
             "iterations_redone": self.redone,
         }
+        if any(self.gamma_views.values()):
+            summary.update({f"gamma_views_{how}": count for how, count in self.gamma_views.items()})
+        return summary

@@ -21,7 +21,7 @@ from ..complexity import ComplexityMaps
 from ..errors import InputError, NonFiniteError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
-from ..render import prepare_camera, rasterize, start_bin_view
+from ..render import bin_view, prepare_camera, rasterize, start_bin_view
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
@@ -441,9 +441,13 @@ class Trainer:
             capacity=capacity,
         )
 
-    def _bins(self, view_index: int):
+    def _bins(self, view_index: int, counted: bool = False):
         """The projection and tile lists of a training view, without colours or image (Γ passes), as
-        a :class:`cdcgs.render.PendingBins` (its ``finish()`` gives them).
+        a :class:`cdcgs.render.PendingBins` (its ``finish()`` gives them), or, where the training
+        knows the view's count (``--sync-free``, the CUDA graphs) and ``counted`` is False, as a
+        :class:`cdcgs.render.RasterizeInfo` binned into the slots the lookahead gives it, which
+        reads nothing back (:func:`cdcgs.complexity.complexity_over_views` reads the pass's flags
+        once, and takes the pass again counted when a view overflowed).
         A pass bins every training view of the same Gaussians: their scales and opacities are
         computed once for it, again only when a parameter has changed (another tensor, or an
         in-place update: torch's version counter; weak references, so that no old parameter is
@@ -456,9 +460,14 @@ class Trainer:
                 self._shape = {"scales": self.model.scales(), "opacities": self.model.opacities()}
             self._shape_key = [(weakref.ref(p), p._version) for p in params]
         means, quats = self.model.params["means"].detach(), self.model.params["quats"].detach()
-        return start_bin_view(
-            means, quats, **self._shape, camera=self.cameras[view_index], antialiased=self.config.antialiased
-        )
+        shape = dict(camera=self.cameras[view_index], antialiased=self.config.antialiased)
+        capacity = None
+        if self.lookahead is not None:
+            capacity = None if counted else self.lookahead.capacity(view_index, self.model.num)
+            self.lookahead.gamma_views["counted_again" if counted else "counted" if capacity is None else "within"] += 1
+        if capacity is None:
+            return start_bin_view(means, quats, **self._shape, **shape)
+        return bin_view(means, quats, **self._shape, **shape, capacity=capacity)
 
     _SHAPE_PARAMS = ("log_scales", "opacity_logits")  # what the cached scales and opacities come from
 
