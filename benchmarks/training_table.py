@@ -243,12 +243,18 @@ def read_run(folder: str) -> dict:
 
 
 def commit() -> str:
+    """HEAD's short hash, and "+ uncommitted changes" when tracked files differ from it (a tree
+    that was edited, or copied onto a GPU machine beside an older ``.git``, is not that commit)."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
     try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
+        head = git("rev-parse", "--short", "HEAD")
+        changed = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+    return f"{head} + uncommitted changes" if changed else head
 
 
 def _number(value, digits: int) -> str:

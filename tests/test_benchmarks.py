@@ -719,3 +719,30 @@ def test_time_split_adds_the_spans_by_hand(tmp_path, capsys):
     with pytest.raises(SystemExit):
         time_split.main([str(tmp_path / "empty")])
     assert "has no history.json" in capsys.readouterr().err
+
+
+def test_the_tables_name_the_commit_and_say_when_the_tree_differs(tmp_path, monkeypatch):
+    """training_table.commit() (the scaling table's too): HEAD's short hash in a clean tree; with a
+    tracked file changed, the hash and "+ uncommitted changes"; outside a repository, "unknown"."""
+    import training_table
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "a.txt").write_text("one\n")
+    git("add", "a.txt")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    head = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=tmp_path, capture_output=True, text=True
+    ).stdout.strip()
+    monkeypatch.setattr(training_table, "ROOT", str(tmp_path))
+    (tmp_path / "new.txt").write_text("untracked files do not count\n")
+    assert training_table.commit() == head
+    (tmp_path / "a.txt").write_text("two\n")
+    assert training_table.commit() == f"{head} + uncommitted changes"
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    monkeypatch.setattr(training_table, "ROOT", str(outside))
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path))
+    assert training_table.commit() == "unknown"
