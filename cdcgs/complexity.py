@@ -21,9 +21,9 @@ import torch
 import warp as wp
 
 from ._interop import launch, warp_scope, wp_arg
-from .errors import NonFiniteError
 from .kernels._constants import BLOCK_SIZE
 from .kernels.blend import MAX_EXACT, MAX_RACY_KEEP, MAX_RACY_RANK, W_MAX_ALPHA, W_MAX_WEIGHT, complexity_kernel
+from .render import any_overflowed
 
 __all__ = [
     "AGGREGATIONS",
@@ -289,7 +289,7 @@ def complexity_over_views(
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     indices = list(range(rank, len(maps), world))
     accumulator, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options)
-    if slotted and _overflowed(slotted):
+    if slotted and any_overflowed(slotted):  # one read for the pass
         accumulator, _ = _measure_views(
             lambda index: bins(index, counted=True), maps, indices, num_gaussians, device, options
         )
@@ -303,7 +303,7 @@ def complexity_over_views(
 
 
 def _measure_views(bins, maps, indices, num_gaussians, device, options):
-    """(the accumulator of ``indices``' views, the (flags, names) of those binned into slots)."""
+    """(the accumulator of ``indices``' views, the ``pending_flags`` of those binned into slots)."""
     accumulator = ViewComplexity(num_gaussians, device, **options)
     seed = accumulator.views_added
     slotted = []
@@ -317,19 +317,8 @@ def _measure_views(bins, maps, indices, num_gaussians, device, options):
         following = started(position + 1) if pending else None  # queued before this view's count is read
         info = current.finish() if pending else current
         if getattr(info, "pending", None) is not None:
-            slotted.append((info.pending, info._pending_names))
+            slotted.append(info.pending_flags)
         accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
         accumulator.add(info, maps[index])
         current = following if pending else started(position + 1)
     return accumulator, slotted
-
-
-def _overflowed(slotted) -> bool:
-    """One read of the flags of the views binned into slots: NonFiniteError for an input that held
-    NaN or inf (the first such view's), else whether any view's pairs overflowed its slots."""
-    rows = torch.stack([flags for flags, _ in slotted]).tolist()
-    for row, (_, names) in zip(rows, slotted):
-        for name, bad in zip(names, row):
-            if bad:
-                raise NonFiniteError(name)
-    return any(row[-2] for row in rows)

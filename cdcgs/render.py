@@ -52,6 +52,7 @@ __all__ = [
     "PendingBins",
     "PreparedCamera",
     "RasterizeInfo",
+    "any_overflowed",
     "bin_view",
     "prepare_camera",
     "rasterize",
@@ -156,11 +157,16 @@ class RasterizeInfo:
         stream = self._pending_stream
         with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
             values = self.pending.tolist()  # on the render's stream, after its work, whatever is current now
-        _raise_nonfinite(self._pending_names, values)
-        overflowed, count = values[-2:]
+        overflowed, count = _pending_outcome(self._pending_names, values)
         if overflowed:
             raise CapacityError(count, self.num_intersections)
         return count
+
+    @property
+    def pending_flags(self) -> tuple[torch.Tensor, tuple] | None:
+        """(``pending``, the names of its finiteness flags) for :func:`any_overflowed`: what a
+        render with ``capacity`` left on the device, without the rest of the info. None without."""
+        return None if self.pending is None else (self.pending, self._pending_names)
 
     @property
     def tiles_x(self) -> int:
@@ -318,6 +324,22 @@ def _count_reader(nonfinite: torch.Tensor, names):
         return values[-1]
 
     return read_count
+
+
+def any_overflowed(flags: list[tuple[torch.Tensor, tuple]]) -> bool:
+    """The :attr:`RasterizeInfo.pending_flags` of several renders with ``capacity``, read in one
+    synchronisation (on the current stream): NonFiniteError naming the first input that held NaN
+    or inf, else whether any render's pairs overflowed its slots."""
+    rows = torch.stack([pending for pending, _ in flags]).tolist()
+    outcomes = [_pending_outcome(names, row) for row, (_, names) in zip(rows, flags)]  # every NaN first
+    return any(overflowed for overflowed, _ in outcomes)
+
+
+def _pending_outcome(names, values) -> tuple[bool, int]:
+    """(overflowed, count) of one render's ``pending`` values, after NonFiniteError for a flagged input."""
+    _raise_nonfinite(names, values)
+    overflowed, count = values[-2:]
+    return bool(overflowed), count
 
 
 def _raise_nonfinite(names, flags) -> None:

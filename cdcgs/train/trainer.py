@@ -461,13 +461,14 @@ class Trainer:
             self._shape_key = [(weakref.ref(p), p._version) for p in params]
         means, quats = self.model.params["means"].detach(), self.model.params["quats"].detach()
         shape = dict(camera=self.cameras[view_index], antialiased=self.config.antialiased)
-        capacity = None
-        if self.lookahead is not None:
-            capacity = None if counted else self.lookahead.capacity(view_index, self.model.num)
-            self.lookahead.gamma_views["counted_again" if counted else "counted" if capacity is None else "within"] += 1
-        if capacity is None:
+        if self.lookahead is None:
             return start_bin_view(means, quats, **self._shape, **shape)
-        return bin_view(means, quats, **self._shape, **shape, capacity=capacity)
+        capacity = None if counted else self.lookahead.capacity(view_index, self.model.num)
+        if capacity is not None:
+            self.lookahead.gamma_views["within"] += 1
+            return bin_view(means, quats, **self._shape, **shape, capacity=capacity)
+        self.lookahead.gamma_views["counted_again" if counted else "counted"] += 1
+        return start_bin_view(means, quats, **self._shape, **shape)
 
     _SHAPE_PARAMS = ("log_scales", "opacity_logits")  # what the cached scales and opacities come from
 
