@@ -72,16 +72,20 @@ def adam_update(
 
 @wp.func_native(
     """
+    // adam_update's arithmetic, operation for operation
+    auto update = [&](float g, float& p, float& m, float& v) {
+        m = beta1 * m + one_minus_beta1 * g;
+        v = beta2 * v + one_minus_beta2 * g * g;
+        p = p - (lr / bias_correction1) * m / (::sqrtf(v) / bias_correction2_sqrt + eps);
+    };
 #if !defined(__CUDA_ARCH__)
-    // The CPU: the same arithmetic on four floats.
+    // The CPU: value by value.
     float* p = reinterpret_cast<float*>(param) + 4 * static_cast<long long>(quad);
     float* m = reinterpret_cast<float*>(exp_avg) + 4 * static_cast<long long>(quad);
     float* v = reinterpret_cast<float*>(exp_avg_sq) + 4 * static_cast<long long>(quad);
     const float* g = reinterpret_cast<const float*>(grad) + 4 * static_cast<long long>(quad);
     for (int j = 0; j < 4; ++j) {
-        m[j] = beta1 * m[j] + one_minus_beta1 * g[j];
-        v[j] = beta2 * v[j] + one_minus_beta2 * g[j] * g[j];
-        p[j] = p[j] - (lr / bias_correction1) * m[j] / (::sqrtf(v[j]) / bias_correction2_sqrt + eps);
+        update(g[j], p[j], m[j], v[j]);
     }
 #else
     float4* values = reinterpret_cast<float4*>(param) + quad;
@@ -89,12 +93,6 @@ def adam_update(
     float4* squares = reinterpret_cast<float4*>(exp_avg_sq) + quad;
     const float4 g = reinterpret_cast<const float4*>(grad)[quad];
     float4 p = *values, m = *moments, v = *squares;
-    // adam_update's arithmetic, operation for operation
-    auto update = [&](float g, float& p, float& m, float& v) {
-        m = beta1 * m + one_minus_beta1 * g;
-        v = beta2 * v + one_minus_beta2 * g * g;
-        p = p - (lr / bias_correction1) * m / (::sqrtf(v) / bias_correction2_sqrt + eps);
-    };
     update(g.x, p.x, m.x, v.x);
     update(g.y, p.y, m.y, v.y);
     update(g.z, p.z, m.z, v.z);
