@@ -56,6 +56,7 @@ __all__ = [
     "bin_view",
     "prepare_camera",
     "rasterize",
+    "sh_adjoint",
     "start_bin_view",
 ]
 
@@ -457,42 +458,50 @@ class _ShColor(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_colors):
         means, sh, sh_rest, radii, colors = ctx.saved_tensors
-        grad_means = torch.empty_like(means)
-        grad_sh = torch.empty_like(sh)
-        grad_sh_rest = None if sh_rest is None else torch.empty_like(sh_rest)
-        grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
-        cuda = means.device.type == "cuda"
-        n = means.shape[0]
-        staged = (
-            cuda and SH_BACKWARD_CUDA == "staged" and sh_rest is not None and sh_rest.shape[1] < MAX_SH_COEFFICIENTS
+        grad_means, grad_sh, grad_sh_rest = sh_adjoint(
+            means, sh, sh_rest, ctx.sh_degree, ctx.camera, radii, colors, grad_colors
         )
-        if staged:  # shared memory, one thread per Gaussian; the higher coefficients as flat floats
-            kernel, dim, block = sh_to_color_staged_backward_kernel, -(-n // SH_BLOCK) * SH_BLOCK, SH_BLOCK
-            rest, grad_rest = _arg(sh_rest.view(-1), wp.float32), _arg(grad_sh_rest.view(-1), wp.float32)
-        else:  # CUDA: one thread per SH coefficient (half-warp shuffles); CPU: one per Gaussian
-            kernel = sh_to_color_grouped_backward_kernel if cuda else sh_to_color_backward_kernel
-            dim, block = n * (MAX_SH_COEFFICIENTS if cuda else 1), None
-            rest = None if sh_rest is None else _arg(sh_rest, wp.vec3)
-            grad_rest = None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3)
-        with _warp_scope(means.device):
-            _launch(
-                kernel,
-                dim,
-                inputs=[
-                    _arg(means, wp.vec3),
-                    _arg(sh, wp.vec3),
-                    rest,
-                    ctx.sh_degree,
-                    ctx.camera.center,
-                    _on_device(ctx.camera, means.device),
-                    _arg(radii, wp.vec2i),
-                    _arg(colors, wp.vec3),
-                    _arg(grad_colors, wp.vec3),
-                ],
-                outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3), grad_rest],
-                block_dim=block,
-            )
         return grad_means, grad_sh, grad_sh_rest, None, None, None, None
+
+
+def sh_adjoint(means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii, colors, grad_colors):
+    """The adjoint of the colours of one view (``colors`` = max(SH(direction from ``camera``), 0) of
+    the Gaussians whose ``radii`` are positive): (grad means, grad ``sh``, grad ``sh_rest``) for the
+    colours' gradient ``grad_colors`` [N, 3]. Every entry is written (culled Gaussians get 0)."""
+    grad_means = torch.empty_like(means)
+    grad_sh = torch.empty_like(sh)
+    grad_sh_rest = None if sh_rest is None else torch.empty_like(sh_rest)
+    grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
+    cuda = means.device.type == "cuda"
+    n = means.shape[0]
+    staged = cuda and SH_BACKWARD_CUDA == "staged" and sh_rest is not None and sh_rest.shape[1] < MAX_SH_COEFFICIENTS
+    if staged:  # shared memory, one thread per Gaussian; the higher coefficients as flat floats
+        kernel, dim, block = sh_to_color_staged_backward_kernel, -(-n // SH_BLOCK) * SH_BLOCK, SH_BLOCK
+        rest, grad_rest = _arg(sh_rest.view(-1), wp.float32), _arg(grad_sh_rest.view(-1), wp.float32)
+    else:  # CUDA: one thread per SH coefficient (half-warp shuffles); CPU: one per Gaussian
+        kernel = sh_to_color_grouped_backward_kernel if cuda else sh_to_color_backward_kernel
+        dim, block = n * (MAX_SH_COEFFICIENTS if cuda else 1), None
+        rest = None if sh_rest is None else _arg(sh_rest, wp.vec3)
+        grad_rest = None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3)
+    with _warp_scope(means.device):
+        _launch(
+            kernel,
+            dim,
+            inputs=[
+                _arg(means, wp.vec3),
+                _arg(sh, wp.vec3),
+                rest,
+                sh_degree,
+                camera.center,
+                _on_device(camera, means.device),
+                _arg(radii, wp.vec2i),
+                _arg(colors, wp.vec3),
+                _arg(grad_colors, wp.vec3),
+            ],
+            outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3), grad_rest],
+            block_dim=block,
+        )
+    return grad_means, grad_sh, grad_sh_rest
 
 
 class _Blend(torch.autograd.Function):

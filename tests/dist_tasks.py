@@ -110,11 +110,16 @@ def params_of(trainer) -> dict:
     return {name: p.detach().cpu().clone() for name, p in trainer.model.params.items()}
 
 
-def first_step_gradients(rank, world, scene, out, batch_size=2, strategy="3dgs", device="cpu", backend="auto"):
-    """The gradients of the first step after the reduction, before the optimizer step (on the CPU)."""
+def first_step_gradients(
+    rank, world, scene, out, batch_size=2, strategy="3dgs", device="cpu", backend="auto", sh_degree=None, **overrides
+):
+    """The gradients of the first step after the reduction, before the optimizer step (on the CPU);
+    ``sh_degree``: the spherical harmonics' degree of that step (its schedule's otherwise)."""
     from cdcgs.train.trainer import Trainer
 
-    config = task_config(scene, out, batch_size=batch_size, strategy=strategy, device=device, dist_backend=backend)
+    config = task_config(
+        scene, out, batch_size=batch_size, strategy=strategy, device=device, dist_backend=backend, **overrides
+    )
     trainer = Trainer(config, dict(SCHEDULE))
     captured = {}
     real_step = None
@@ -130,6 +135,8 @@ def first_step_gradients(rank, world, scene, out, batch_size=2, strategy="3dgs",
     trainer._given_ranks = trainer.ranks
     os.makedirs(out, exist_ok=True)
     trainer._setup()
+    if sh_degree is not None:
+        trainer.model.sh_degree = sh_degree
     real_step = trainer.optimizer.step
     trainer.optimizer.step = spy
     trainer.train_step()
@@ -151,14 +158,26 @@ def run_here(task: str, **kwargs) -> dict:
 
 
 def train(
-    rank, world, scene, out, strategy="3dgs", options=None, stop_at=None, die_at=None, perturb_at=None, **overrides
+    rank,
+    world,
+    scene,
+    out,
+    strategy="3dgs",
+    options=None,
+    stop_at=None,
+    die_at=None,
+    perturb_at=None,
+    tight_slots=False,
+    **overrides,
 ):
     """A whole run; the parameters' checksums after every step, the final parameters, and the
     files each rank wrote. ``stop_at``: this rank sends itself SIGTERM after that iteration;
-    ``die_at``: rank 1 exits at once there; ``perturb_at``: rank 1 changes a parameter there."""
+    ``die_at``: rank 1 exits at once there; ``perturb_at``: rank 1 changes a parameter there;
+    ``tight_slots``: with --sync-free, slots of exactly the last count, so that renders of grown
+    Gaussians overflow and the run goes back."""
     import torch
 
-    from cdcgs.train import outputs
+    from cdcgs.train import lookahead, outputs
     from cdcgs.train import trainer as trainer_module
     from cdcgs.train.distributed import _checksum
     from cdcgs.train.trainer import Trainer
@@ -191,9 +210,26 @@ def train(
         return result
 
     Trainer.train_step = step
+    from cdcgs.train.distributed import Ranks
+
+    released = []  # at the close of the process group: whether no replayed step's graph was left
+    patched.append((Ranks, "close", Ranks.close))
+    real_close = Ranks.close
+
+    def close(self, *args, **kwargs):
+        graphs = getattr(trainers[0], "graphs", None) if trainers else None
+        released.append(graphs is None or graphs.key is None)
+        return real_close(self, *args, **kwargs)
+
+    Ranks.close = close
+    trainers = []
+    if tight_slots:
+        patched += [(lookahead, "MARGIN", lookahead.MARGIN), (lookahead, "FLOOR", lookahead.FLOOR)]
+        lookahead.MARGIN, lookahead.FLOOR = 1.0, 0
     trainer = Trainer(
         task_config(scene, out, strategy=strategy, **overrides), dict(SCHEDULE if options is None else options)
     )
+    trainers.append(trainer)
     try:
         result = trainer.run()
     except KeyboardInterrupt as stop:
@@ -206,6 +242,9 @@ def train(
         "params": params_of(trainer),
         "writes": writes,
         "metrics": {k: result[k] for k in ("num_gaussians", "iterations", "processes", "batch_size")},
+        "released_before_close": released,
+        "sync_free": result.get("sync_free"),
+        "cuda_graph": result.get("cuda_graph"),
         "test": result["test"],
         "events": list(trainer.history["strategy"]),
     }

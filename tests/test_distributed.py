@@ -64,6 +64,39 @@ def test_two_processes_sum_the_gradients_of_one_batch(small_scene, tmp_path):
     assert any(g.abs().max() > 0 for g in one.values())
 
 
+@pytest.mark.parametrize("batch", [2, 3])
+def test_exchanging_colours_gives_the_gradients_of_one_batch(small_scene, tmp_path, batch):
+    """--dist-exchange colours: the spherical harmonics' gradients rebuilt on every process from the
+    views' colour gradients equal one process's batch gradients (rtol 1e-5), the same bits on both
+    processes; with 3 views on 2 processes one process renders 2 and the other 1 (zeros padded)."""
+    colours = dict(scene=small_scene, batch_size=batch, dist_exchange="colours", sh_degree=3)
+    ranks = ok(run_ranks("first_step_gradients", 2, tmp_path, out=tmp_path / "two", **colours))
+    one = first_step_gradients(rank=0, world=1, scene=small_scene, out=tmp_path / "one", batch_size=batch, sh_degree=3)
+    for name in one:
+        assert torch.equal(ranks[0][name], ranks[1][name]), name
+        torch.testing.assert_close(ranks[0][name], one[name], rtol=1e-5, atol=1e-9, msg=name)
+    assert one["sh_dc"].abs().max() > 0 and one["sh_rest"].abs().max() > 0
+
+
+@pytest.mark.parametrize("options", [{}, {"cuda_graph": True}], ids=["eager", "replayed"])
+def test_runs_that_exchange_colours_stay_equal_and_match_one_process(small_scene, runs_3dgs, tmp_path, options):
+    """A whole run with --dist-exchange colours (densification, an opacity reset, SH degrees 0 to 2):
+    the processes equal after every step, and the run that of one process, as close as with the
+    gradients exchanged; the replayed steps give the eager ones' bits."""
+    _, one, _ = runs_3dgs
+    two = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", dist_exchange="colours", **options)
+    r0, r1 = ok(two)
+    assert r0["checksums"] == r1["checksums"]
+    assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]]
+    assert_params_close(r0["params"], one["params"])
+    if options:
+        eager = ok(run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "eager", dist_exchange="colours"))[
+            0
+        ]
+        assert r0["cuda_graph"]["replayed_steps"] > 0
+        assert r0["checksums"] == eager["checksums"]
+
+
 def test_two_processes_on_one_gpu_with_gloo_sum_the_gradients(small_scene, tmp_path, device):
     """The CUDA path of gloo (several processes sharing a GPU): gloo reduces host copies. Reducing
     the CUDA tensors directly trained to 10 dB on bonsai (H100, 2026-11-25) with equal ranks."""
@@ -121,6 +154,72 @@ def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, opt
     assert r0["checksums"] == r1["checksums"]
     assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] and r0["events"]
     assert_params_close(r0["params"], one["params"], rtol=1e-4, atol=1e-5)
+
+
+LONGER = 40  # iterations: enough for renders of grown Gaussians to overflow slots of their last count
+
+
+@pytest.fixture(scope="module")
+def counted_longer(small_scene, tmp_path_factory):
+    """Rank 0 of a 2-process run of LONGER iterations that reads every count."""
+    tmp = tmp_path_factory.mktemp("counted_longer")
+    return ok(run_ranks("train", 2, tmp, scene=small_scene, out=tmp / "two", iters=LONGER))[0]
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"sync_free": True, "tight_slots": True},
+        {"cuda_graph": True},
+        {"cuda_graph": True, "tight_slots": True},
+    ],
+    ids=["sync-free-slots-of-the-last-count", "replayed", "replayed-slots-of-the-last-count"],
+)
+def test_steps_that_read_no_count_on_two_processes_are_the_run_that_reads_every_count(
+    small_scene, counted_longer, tmp_path, options
+):
+    """--sync-free and the replayed steps on two processes: a halt of either process (its slots
+    overflowed) travels with the step's all-reduce, stops every update on both, and both go back
+    to the same iteration at the next read; the replayed steps hold the all-reduce and are taken
+    by both processes or by neither. Either way the run is the one that reads every count, bit
+    for bit, with the processes equal after every step."""
+    counted = counted_longer
+    two = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", iters=LONGER, **options)
+    r0, r1 = ok(two)
+    assert r0["checksums"] == r1["checksums"]
+    assert r0["checksums"][-1] == counted["checksums"][-1]
+    for name, value in counted["params"].items():
+        assert torch.equal(r0["params"][name], value), name
+    summaries = [r["sync_free"] for r in (r0, r1)]
+    if options.get("tight_slots"):
+        assert all(s["rewinds"] > 0 for s in summaries), summaries  # every process went back
+        assert summaries[0]["rewinds"] == summaries[1]["rewinds"], summaries
+    if options.get("cuda_graph"):
+        replayed = [r["cuda_graph"]["replayed_steps"] for r in (r0, r1)]
+        assert replayed[0] == replayed[1] > 0, replayed
+        # A graph that holds NCCL's all-reduce must go before the process group: 2-GPU runs whose
+        # last steps were replayed hung at its destruction (2 x H200, 2026-11-27).
+        assert r0["released_before_close"] == r1["released_before_close"] == [True]
+
+
+@pytest.mark.skipif(
+    not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
+    reason="needs two GPUs and NCCL",
+)
+def test_replayed_steps_on_two_gpus_hold_the_all_reduce_and_keep_the_ranks_equal(small_scene, tmp_path, device):
+    """NCCL's all-reduce captured in each process's graph: the processes replay together, stay
+    equal after every step, train as the run that reads every count does (as close as CUDA's
+    atomic sums let two runs be), and end (the graphs go before the process group)."""
+    if device == "cpu":
+        pytest.skip("NCCL on two GPUs (the CPU case is the test above)")
+    gpus = dict(scene=small_scene, iters=LONGER, device="cuda", dist_backend="auto", timeout=300.0)
+    replayed = ok(run_ranks("train", 2, tmp_path, out=tmp_path / "replayed", cuda_graph=True, **gpus))
+    counted = ok(run_ranks("train", 2, tmp_path, out=tmp_path / "counted", cuda_graph=False, **gpus))
+    assert replayed[0]["checksums"] == replayed[1]["checksums"]
+    assert replayed[0]["cuda_graph"]["replayed_steps"] > 0, replayed[0]["cuda_graph"]
+    assert replayed[0]["released_before_close"] == [True]
+    assert replayed[0]["metrics"]["num_gaussians"] == pytest.approx(counted[0]["metrics"]["num_gaussians"], rel=0.05)
+    assert replayed[0]["test"]["psnr"] == pytest.approx(counted[0]["test"]["psnr"], abs=0.3)
 
 
 def test_a_stopped_run_on_two_processes_resumes_in_one(small_scene, runs_3dgs):

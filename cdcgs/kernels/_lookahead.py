@@ -54,3 +54,15 @@ def select_camera_kernel(
     """One thread: ``camera_out[0] = cameras[where[1]]``, the camera of the view that a step
     replayed as a CUDA graph renders (its host writes ``where`` before the replay)."""
     camera_out[0] = cameras[where[1]]
+
+
+@wp.kernel(enable_backward=False)
+def select_camera_at_kernel(
+    cameras: wp.array(dtype=Camera),
+    where: wp.array(dtype=wp.int32),
+    entry: int,
+    camera_out: wp.array(dtype=Camera),
+):
+    """One thread: ``camera_out[0] = cameras[where[entry]]``: on several processes, the camera of
+    another view of a replayed step (``--dist-exchange colours`` rebuilds its SH gradients)."""
+    camera_out[0] = cameras[where[entry]]

@@ -191,11 +191,11 @@ class TrainConfig:
     )
     sync_free: bool = option(
         False,
-        "render a view into slots sized by its last count of pairs instead of reading the count, so the host never waits for the GPU between the reads a training makes anyway (logs, densification, evaluation); a render that overflows its slots halts every update until the next read, which takes the iterations from it again: the same run as without (one process; adam or selective)",
+        "render a view into slots sized by its last count of pairs instead of reading the count, so the host never waits for the GPU between the reads a training makes anyway (logs, densification, evaluation); a render that overflows its slots halts every update until the next read, which takes the iterations from it again: the same run as without (on several processes a halt stops every process, and all go back together; adam or selective)",
     )
     cuda_graph: bool | None = option(
         None,
-        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (one process; batch size 1; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view) (none: as the resumed run chose, else on wherever the training can take it on CUDA and off elsewhere, saying why)",
+        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (batch size 1, or on several processes one view per process with the step's all-reduce in the graph; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view) (none: as the resumed run chose, else on wherever the training can take it on CUDA and off elsewhere, saying why)",
     )
     batch_size: int = option(
         1,
@@ -218,6 +218,11 @@ class TrainConfig:
         "auto",
         "torch.distributed backend of a torchrun launch: auto (nccl when every process has a GPU of its own, else gloo), nccl or gloo",
         choices=("auto", "nccl", "gloo"),
+    )
+    dist_exchange: str = option(
+        "gradients",
+        "what the processes of a torchrun launch exchange each step: gradients (every parameter's, in one all-reduce) or colours (the geometric parameters' gradients, and each view's colour gradients, from which every process rebuilds the spherical harmonics' gradients of the whole batch: 3.8x fewer bytes on 2 GPUs, 3.2x on 4, for one SH adjoint more per view of the step)",
+        choices=("gradients", "colours"),
     )
     dist_timeout: float = option(
         600.0,

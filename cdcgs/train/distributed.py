@@ -216,6 +216,22 @@ class Ranks:
         self._collective(f"all_reduce ({op})", lambda: dist.all_reduce(tensor, op=ops[op]))
         return tensor
 
+    def all_gather_(self, tensor: torch.Tensor) -> torch.Tensor:
+        """Every rank's ``tensor`` (the same shape on each), stacked in rank order along a new
+        first dimension."""
+        if not self.distributed:
+            return tensor[None]
+        import torch.distributed as dist
+
+        if self.backend == "gloo":  # gloo gathers host memory into a list
+            host = tensor.cpu()
+            parts = [torch.empty_like(host) for _ in range(self.world)]
+            self._collective("all_gather", lambda: dist.all_gather(parts, host))
+            return torch.stack(parts).to(tensor.device)
+        out = tensor.new_empty((self.world, *tensor.shape))
+        self._collective("all_gather", lambda: dist.all_gather_into_tensor(out, tensor.contiguous()))
+        return out
+
     def all_gather_object(self, obj) -> list:
         """Every rank's ``obj`` (picklable), in rank order."""
         if not self.distributed:
@@ -330,7 +346,10 @@ class StatisticsSync:
     step are reduced, not their totals, so nothing is counted twice) or ``max`` (screen radii,
     the max of Γ: reduced as they are). :meth:`begin` notes the sums at the start of a step,
     :meth:`deltas` gives what this rank added since (to travel with the gradients), and
-    :meth:`finish` writes back start + the reduced additions and reduces the maxima."""
+    :meth:`finish` writes back start + the reduced additions and reduces the maxima, in place (a
+    step replayed as a CUDA graph reads and writes the same tensors every time). With a ``halt``
+    (``--sync-free``: some process's render overflowed) every statistic keeps its value from the
+    start of the step, which is taken again."""
 
     def __init__(self, ranks: Ranks, kinds: dict[str, str]):
         bad = {k: v for k, v in kinds.items() if v not in ("sum", "max")}
@@ -338,19 +357,26 @@ class StatisticsSync:
             raise ValueError(f"statistics must be reduced by sum or max, got {bad}")
         self.ranks, self.kinds = ranks, dict(kinds)
         self._start: dict[str, torch.Tensor] = {}
+        self._held: dict[str, torch.Tensor] = {}
 
     def _keys(self, state: dict, kind: str) -> list[str]:
         return [k for k, v in self.kinds.items() if v == kind and k in state]
 
-    def begin(self, state: dict) -> None:
+    def begin(self, state: dict, halts: bool = False) -> None:
+        """Note the sums (and with ``halts``, the maxima too) at the start of a step."""
         self._start = {k: state[k].clone() for k in self._keys(state, "sum")}
+        self._held = {k: state[k].clone() for k in self._keys(state, "max")} if halts else {}
 
     def deltas(self, state: dict) -> list[torch.Tensor]:
         return [(state[k] - self._start[k]).float() for k in self._start]
 
-    def finish(self, state: dict, reduced: list[torch.Tensor]) -> None:
+    def finish(self, state: dict, reduced: list[torch.Tensor], halt: torch.Tensor | None = None) -> None:
+        held = None if halt is None else halt.bool()
         for k, delta in zip(list(self._start), reduced):
-            state[k] = self._start[k] + delta.to(state[k].dtype)
+            total = self._start[k] + delta.to(state[k].dtype)
+            state[k].copy_(total if held is None else torch.where(held, self._start[k], total))
         for k in self._keys(state, "max"):
             self.ranks.all_reduce_(state[k], "max")
-        self._start = {}
+            if held is not None:
+                state[k].copy_(torch.where(held, self._held[k], state[k]))
+        self._start, self._held = {}, {}

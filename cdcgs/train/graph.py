@@ -42,7 +42,7 @@ from torch.autograd.graph import increment_version
 
 from .._interop import launch, warp_device, warp_scope, wp_arg
 from ..errors import OptionError
-from ..kernels._lookahead import select_camera_kernel
+from ..kernels._lookahead import select_camera_at_kernel, select_camera_kernel
 from ..kernels.adam import adam_quads
 from ..kernels.projection import Camera
 from ..render import rasterize
@@ -56,6 +56,7 @@ __all__ = ["GraphSteps", "graph_refusal"]
 # a slot is never rewritten before its copy has run.
 RING = 256
 assert READ_EVERY < RING
+WHERE_VIEWS = 4  # where the step's views begin in ``where``
 
 
 def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
@@ -72,15 +73,21 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
             "needs Warp's memory pool on the GPU (the step's sorts and scans allocate inside the capture)",
             "this GPU or driver has none",
         )
-    refusal = halt_refusal(config, trainer.strategy, trainer.ranks.distributed)
+    refusal = halt_refusal(config, trainer.strategy)
     if refusal is not None:
         return refusal
     if any(getattr(callback, "renders_beside_training", False) for callback in trainer.callbacks):
         return "captures steps, which a viewer's renders on another thread would run into", "drop --view"
     if not isinstance(trainer.optimizer, FusedAdam):
         return "launches FusedAdam itself", "use --optimizer adam or selective"
-    if config.batch_size != 1:
-        return "captures a step of one view", f"drop --batch-size {config.batch_size}"
+    world = trainer.ranks.world
+    if config.batch_size != world:
+        if world == 1:
+            return "captures a step of one view", f"drop --batch-size {config.batch_size}"
+        return (
+            "captures a step of one view per process",
+            f"use --batch-size {world} with {world} processes, not {config.batch_size}",
+        )
     if config.background == "random":
         return "needs a fixed background", "--background random draws one each step"
     if getattr(trainer.strategy, "graph_signature", None) is None:
@@ -111,8 +118,11 @@ class GraphSteps:
         if refusal is not None:
             raise OptionError(f"--cuda-graph {refusal[0]}: {refusal[1]}")
         pinned = self.cuda
-        self.where = torch.zeros(2, dtype=torch.int32, device=self.device)
-        self._where_ring = torch.zeros(RING, 2, dtype=torch.int32, pin_memory=pinned)
+        # (iteration, view, a signal is pending, a render met NaN, the step's views in batch order):
+        # the flags for the all-reduce, the views for --dist-exchange colours
+        entries = WHERE_VIEWS + trainer.ranks.world
+        self.where = torch.zeros(entries, dtype=torch.int32, device=self.device)
+        self._where_ring = torch.zeros(RING, entries, dtype=torch.int32, pin_memory=pinned)
         self._where_slots = self._where_ring.numpy()
         self._rates_ring: torch.Tensor | None = None
         self._tables: dict[int, tuple] = {}  # scale -> (cameras on the device, camera of the step, stacked photos)
@@ -123,14 +133,22 @@ class GraphSteps:
         self.capture_seconds = 0.0  # the host's time in the captures (recording and instantiating)
         self.replays = 0
         self._table = self._rates = self._grads = None
+        self._batch_slots: list = []  # one-camera arrays of the step's views (--dist-exchange colours)
 
     # ----------------------------------------------------------------------------- when
 
     def key_of(self, iteration: int, scale: int):
-        """What the graph of ``iteration``'s step is fixed to, or None: take it as before."""
+        """What the graph of the step that begins at ``iteration`` is fixed to, or None: take it as
+        before. On several processes it is the same on every one (each process's graph holds the
+        step's all-reduce, which all must replay together): every part of it is, the addresses
+        included, which change only at refinements, where no step is replayed."""
         trainer = self.trainer
-        signature = trainer.strategy.graph_signature(iteration)
-        if signature is None or trainer.strategy.refines_at(iteration):
+        strategy = trainer.strategy
+        iterations = range(iteration, iteration + trainer.ranks.world)  # one view per process
+        signature = strategy.graph_signature(iteration)
+        if signature is None or any(strategy.refines_at(i) for i in iterations):
+            return None
+        if any(strategy.graph_signature(i) != signature or trainer._downscale(i) != scale for i in iterations):
             return None
         if sum(adam_quads(p.numel()) for p in trainer.model.params.values()) > MAX_LAUNCH_THREADS:
             return None  # Adam would need several launches (FusedAdam.step splits them)
@@ -145,28 +163,39 @@ class GraphSteps:
                 addresses += [p.data_ptr(), state["exp_avg"].data_ptr(), state["exp_avg_sq"].data_ptr()]
         return (signature, trainer.model.sh_degree, scale, trainer.model.num, tuple(addresses))
 
-    def take(self, iteration: int, view: int, background: torch.Tensor) -> bool:
-        """Take ``iteration`` (one view, ``view``) as a replayed step and return True, or return
-        False: the trainer takes it as before."""
+    def take(self, first: int, views: list[int], backgrounds: list[torch.Tensor]) -> bool:
+        """Take the step that begins at iteration ``first`` (one view per process: ``views`` and
+        ``backgrounds``, in batch order) as a replayed step and return True, or return False: the
+        trainer takes it as before. On several processes every process decides alike, from what
+        all of them know (the counts agreed at the last read), so that they replay together."""
         trainer = self.trainer
-        scale = trainer._downscale(iteration)
-        key = self.key_of(iteration, scale)
+        ranks = trainer.ranks
+        scale = trainer._downscale(first)
+        key = self.key_of(first, scale)
         if key != self.key:
             self.release()  # before the refinement or the capture that comes next: not both in memory
         if key is None:
             return False
         lookahead = trainer.lookahead
-        needed = lookahead.capacity(view, trainer.model.num, scale)
-        if needed is None:
-            return False  # its first render at this scale reads the count
-        if key != self.key or needed > self.capacity:
-            self._capture(key, scale, background)
-        slot = iteration % RING
-        self._where_slots[slot] = (iteration, view)
+        agreed = ranks.distributed
+        needs = [lookahead.capacity(v, trainer.model.num, scale, agreed=agreed) for v in views]
+        if any(needed is None for needed in needs):
+            return False  # a first render at this scale reads the count
+        if key != self.key or max(needs) > self.capacity:
+            self._capture(key, scale, backgrounds[ranks.rank])
+        iteration, view = first + ranks.rank, views[ranks.rank]
+        slot = first % RING
+        self._where_slots[slot] = (
+            iteration,
+            view,
+            trainer.signals.pending is not None,
+            trainer._nonfinite_at is not None,
+            *views,
+        )
         self._rates_slots[slot] = trainer.optimizer.advance(self._params)
         self.where.copy_(self._where_ring[slot], non_blocking=True)
         self._rates.copy_(self._rates_ring[slot], non_blocking=True)
-        lookahead.replayed(view, trainer.model.num, scale)
+        lookahead.replayed(view, trainer.model.num, scale, iteration)
         if self.cuda:
             self.graph.replay()
         else:
@@ -182,7 +211,8 @@ class GraphSteps:
         """Capture the step for ``key`` with slots for every view known at this scale."""
         trainer = self.trainer
         lookahead = trainer.lookahead
-        known = [lookahead.capacity(v, trainer.model.num, scale) for v in range(len(trainer.scene.train))]
+        agreed = trainer.ranks.distributed
+        known = [lookahead.capacity(v, trainer.model.num, scale, agreed) for v in range(len(trainer.scene.train))]
         self.release()  # the old graph's memory goes back before the new one takes its own
         capacity = max(c for c in known if c is not None)
         self.capacity = capacity
@@ -196,7 +226,8 @@ class GraphSteps:
         self._scale = scale
         self.captures += 1
         trainer.optimizer.zero_grad(set_to_none=True)
-        self._tables_at(scale)  # Warp allocates them: not inside the capture
+        cameras = self._tables_at(scale)[0]  # Warp allocates them: not inside the capture
+        self._batch_slots = [wp.empty(1, dtype=Camera, device=cameras.device) for _ in range(trainer.ranks.world)]
         if not self.cuda:
             self.key = key
             return
@@ -249,6 +280,10 @@ class GraphSteps:
         trainer = self.trainer
         config = trainer.config
         cameras, current, prepared, photos = self._tables_at(self._scale)
+        distributed = trainer.ranks.distributed
+        lookahead = trainer.lookahead
+        if distributed:
+            trainer.statistics.begin(trainer.strategy_state, halts=True)
         with warp_scope(self.device):
             launch(select_camera_kernel, 1, inputs=[cameras, wp_arg(self.where, wp.int32)], outputs=[current])
         image, _, info = rasterize(
@@ -258,21 +293,26 @@ class GraphSteps:
             antialiased=config.antialiased,
             capacity=self.capacity,
         )
-        lookahead = trainer.lookahead
         lookahead.note(info, 0, 0, trainer.model.num, self._scale, where=self.where)  # take() records the view
-        photo = photos.index_select(0, self.where[1:]).squeeze(0)
+        photo = photos.index_select(0, self.where[1:2]).squeeze(0)
         loss, image_psnr = trainer._loss(image, photo)
-        iteration = trainer.step + 1  # the signature's: every step of the graph shares what the hooks read of it
+        # the signature's: every step of the graph shares what the hooks read of it
+        iteration = trainer.step + 1 + trainer.ranks.rank
         ctx = trainer._context(iteration, info, None)
         trainer.strategy.before_backward(ctx, trainer.strategy_state)
         if trainer.strategy.regularizer(ctx) is not None:
             raise RuntimeError(
                 f"the {config.strategy} strategy adds a regulariser, which --cuda-graph does not capture"
             )
-        loss.backward()
-        trainer.guard.record(loss, image_psnr, lookahead.halt)
+        trainer._backward(loss, info)
         trainer.strategy.observe(ctx, trainer.strategy_state)
         visible = info.visible if config.optimizer == "selective" else None
+        if distributed:  # the step's all-reduce, as Trainer.train_step's, with the flags from the host's copy
+            flags = torch.cat([self.where[2:WHERE_VIEWS].float(), lookahead.halt.float()])
+            cameras = self._batch_cameras(cameras, prepared) if trainer._exchanges_colours else None
+            trainer._reduce(trainer.ranks.world, visible, timed=False, flags=flags, cameras=cameras)
+            visible = trainer._visible
+        trainer.guard.record(loss, image_psnr, lookahead.halt)
         threads = sum(adam_quads(p.numel()) for p in self._params)
         if not self.cuda:  # one operation at a time: this step's gradients
             self._grads = [p.grad for p in self._params]
@@ -281,6 +321,19 @@ class GraphSteps:
         if not self.cuda:
             trainer.optimizer.zero_grad(set_to_none=True)
             self._grads = None
+
+    def _batch_cameras(self, cameras, prepared) -> list:
+        """The step's views' cameras on the device, in batch order (``where``'s last entries), as
+        prepared cameras like ``prepared`` that the SH adjoint reads."""
+        with warp_scope(self.device):
+            for position, slot in enumerate(self._batch_slots):
+                launch(
+                    select_camera_at_kernel,
+                    1,
+                    inputs=[cameras, wp_arg(self.where, wp.int32), WHERE_VIEWS + position],
+                    outputs=[slot],
+                )
+        return [dataclasses.replace(prepared, on_device=slot) for slot in self._batch_slots]
 
     def _fill_table(self) -> None:
         """Adam's address table: each parameter, its gradient (the graph's), its two moments, its

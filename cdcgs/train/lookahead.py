@@ -36,12 +36,11 @@ from ..render import MAX_CAPACITY
 __all__ = ["FLOOR", "MARGIN", "READ_EVERY", "Halted", "Lookahead", "halt_refusal"]
 
 
-def halt_refusal(config, strategy, distributed: bool) -> tuple[str, str] | None:
+def halt_refusal(config, strategy) -> tuple[str, str] | None:
     """Why a training cannot render without reading its counts (``--sync-free``, and the steps
     replayed as CUDA graphs, which build on it), and what to change: (why, what to change), or
-    None. A halt must stop every update until the host has read it, on one process."""
-    if distributed:
-        return "trains on one process", "drop it for a torchrun launch of several"
+    None. A halt must stop every update until the host has read it (on several processes, every
+    process's: the halt travels with the step's all-reduce)."""
     if config.optimizer not in ("adam", "selective"):
         return f"halts Adam on the device, which --optimizer {config.optimizer} cannot", "use adam or selective"
     if getattr(strategy, "complexity_schedule", None) == "online" and strategy.needs_complexity:
@@ -86,27 +85,32 @@ class Lookahead:
         self.halt = torch.zeros(1, dtype=torch.int32, device=self.device)
         self._first = torch.zeros(3, dtype=torch.int32, device=self.device)
         self._counts = torch.zeros(max(num_views, 1), dtype=torch.int32, device=self.device)
-        self._known: dict[int, tuple[int, int, int]] = {}  # view -> (count, Gaussians then, scale)
-        self._noted: dict[int, tuple[int, int]] = {}  # views rendered with slots since the last read
+        # view -> (count, Gaussians then, scale, iteration of that render)
+        self._known: dict[int, tuple[int, int, int, int]] = {}
+        # On several processes: the counts every process knows (the union of theirs at the last
+        # read), which alone may decide what every process must do alike (a replayed step).
+        self._agreed: dict[int, tuple[int, int, int, int]] = {}
+        self._noted: dict[int, tuple[int, int, int]] = {}  # views rendered with slots since the last read
         self.renders = {"counted": 0, "within": 0}
         self.rewinds = 0
         self.redone = 0  # iterations taken again
         # the Γ passes' views (CDC-GS): binned into slots, reading their count, read again after an overflow
         self.gamma_views = {"within": 0, "counted": 0, "counted_again": 0}
 
-    def capacity(self, view: int, gaussians: int, scale: int = 1) -> int | None:
+    def capacity(self, view: int, gaussians: int, scale: int = 1, agreed: bool = False) -> int | None:
         """Slots for ``view`` rendered at 1/``scale`` with ``gaussians`` Gaussians, or None: read
-        the count (never rendered at this scale, or more slots than a render takes)."""
-        known = self._known.get(view)
+        the count (never rendered at this scale, or more slots than a render takes). ``agreed``:
+        from the counts every process knows alike (:meth:`merge`), not this process's own."""
+        known = (self._agreed if agreed else self._known).get(view)
         if known is None or known[2] != scale:
             return None
-        count, then, _ = known
+        count, then, _, _ = known
         slots = math.ceil(count * max(1.0, gaussians / max(then, 1)) * MARGIN) + FLOOR
         return slots if slots <= MAX_CAPACITY else None
 
-    def counted(self, view: int, count: int, gaussians: int, scale: int = 1) -> None:
-        """A render of ``view`` that read its ``count``."""
-        self._known[view] = (count, gaussians, scale)
+    def counted(self, view: int, count: int, gaussians: int, scale: int = 1, iteration: int = 0) -> None:
+        """A render of ``view`` at ``iteration`` that read its ``count``."""
+        self._known[view] = (count, gaussians, scale, iteration)
         self.renders["counted"] += 1
 
     def note(
@@ -117,7 +121,7 @@ class Lookahead:
         tensor that holds (iteration, view) when the launch runs (a captured step's); the host's
         ``step`` and ``view`` then only say what was rendered (:meth:`replayed`)."""
         if where is None:
-            self.replayed(view, gaussians, scale)
+            self.replayed(view, gaussians, scale, step)
         no_where = torch.empty(0, dtype=torch.int32, device=self.device) if where is None else where
         with warp_scope(self.device):
             launch(
@@ -127,20 +131,23 @@ class Lookahead:
                 outputs=[wp_arg(self.halt, wp.int32), wp_arg(self._first, wp.int32), wp_arg(self._counts, wp.int32)],
             )
 
-    def replayed(self, view: int, gaussians: int, scale: int = 1) -> None:
-        """A render of ``view`` with a capacity whose note runs on the device (a replayed step)."""
-        self._noted[view] = (gaussians, scale)
+    def replayed(self, view: int, gaussians: int, scale: int = 1, iteration: int = 0) -> None:
+        """A render of ``view`` at ``iteration`` with a capacity whose note runs on the device (a
+        replayed step)."""
+        self._noted[view] = (gaussians, scale, iteration)
         self.renders["within"] += 1
 
-    def read(self) -> Halted | None:
+    def read(self, always: bool = False) -> Halted | None:
         """One host synchronisation: the counts of the views rendered since the last read, and the
-        halt (cleared here), or None when no render halted."""
-        if not self._noted:  # only a render with slots sets the halt, and the last read cleared it
+        halt (cleared here), or None when no render halted. ``always``: read the flags even when
+        no render of this process had slots since the last read (on several processes another
+        process's halt reaches this one's flags through the all-reduce)."""
+        if not self._noted and not always:  # only a render with slots sets the halt, and the last read cleared it
             return None
         values = torch.cat([self.halt, self._first, self._counts]).tolist()
         halted, counts = values[:4], values[4:]
-        for view, (gaussians, scale) in self._noted.items():
-            self._known[view] = (counts[view], gaussians, scale)
+        for view, (gaussians, scale, iteration) in self._noted.items():
+            self._known[view] = (counts[view], gaussians, scale, iteration)
         self._noted.clear()
         if not halted[0]:
             return None
@@ -148,10 +155,27 @@ class Lookahead:
         self._first.zero_()
         return Halted(*halted[1:])
 
+    def known(self) -> dict[int, tuple[int, int, int, int]]:
+        """This process's counts: view -> (count, Gaussians then, scale, iteration)."""
+        return dict(self._known)
+
+    def merge(self, tables: list[dict]) -> None:
+        """Take the counts of every process (``tables``: :meth:`known` of each, in rank order),
+        the latest render of each view winning; every process then holds the same counts, the
+        agreed ones included."""
+        merged: dict[int, tuple[int, int, int, int]] = {}
+        for table in tables:
+            for view, entry in table.items():
+                if view not in merged or entry[3] > merged[view][3]:
+                    merged[view] = entry
+        self._known = merged
+        self._agreed = dict(merged)
+
     def forget(self) -> None:
         """Every view reads its count again (after a change that moves the counts, e.g. a new
         render size)."""
         self._known.clear()
+        self._agreed.clear()
 
     def summary(self) -> dict:
         """metrics.json's account: renders that read their count and that did not, halts, the

@@ -21,7 +21,7 @@ from ..complexity import ComplexityMaps
 from ..errors import InputError, NonFiniteError, OptionError
 from ..io import load_checkpoint, load_scene, save_checkpoint, write_ply
 from ..io.checkpoint import remove_temporary_files
-from ..render import bin_view, prepare_camera, rasterize, start_bin_view
+from ..render import bin_view, prepare_camera, rasterize, sh_adjoint, start_bin_view
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
@@ -29,7 +29,7 @@ from .evaluate import evaluate, lpips_metric
 from .graph import GraphSteps, graph_refusal
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
-from .lookahead import READ_EVERY, Lookahead, halt_refusal
+from .lookahead import READ_EVERY, Halted, Lookahead, halt_refusal
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer, set_hyperparameters
@@ -209,14 +209,16 @@ class Trainer:
         self.peak_memory = {"train": 0, "eval": 0}  # bytes, of this process; evaluations apart
         self.peak_reserved = 0  # bytes torch's caching allocator held at most (freed blocks it keeps included)
         self.step_events: list[tuple[int, dict]] = []  # (iteration, log) of the last step's refinements
-        # Reduced over the processes every step: (a signal is pending, a render met NaN) on any.
-        self._flags = torch.zeros(2)
+        # Reduced over the processes every step: (a signal is pending, a render met NaN, a halt) on any.
+        self._flags = torch.zeros(3)
         self._nonfinite_at: int | None = None  # the iteration whose render met NaN, on this process
         # (wait ms, all-reduce ms, step ms, bytes reduced) of each timed step
         self._communication: list[tuple[float, float, float, int]] = []
         self._reduce_ms = self._wait_ms = 0.0
         self._reduce_bytes = 0
         self._visible: torch.Tensor | None = None  # selective Adam: the step's visible Gaussians
+        # --dist-exchange colours: this process's views' colour gradients of the step, in batch order
+        self._colour_grads: list[torch.Tensor] = []
         self.lookahead: Lookahead | None = None  # --sync-free
         self.graphs: GraphSteps | None = None  # --cuda-graph
         self.graph_off: str | None = None  # why the steps are not replayed as CUDA graphs
@@ -358,7 +360,7 @@ class Trainer:
         config = self.config
         if not (config.sync_free or config.cuda_graph):
             return
-        refusal = halt_refusal(config, self.strategy, self.ranks.distributed)
+        refusal = halt_refusal(config, self.strategy)
         if refusal is not None:
             name = "--cuda-graph" if config.cuda_graph else "--sync-free"
             raise OptionError(f"{name} {refusal[0]}: {refusal[1]}")
@@ -631,13 +633,16 @@ class Trainer:
         views = [self._next_view() for _ in range(count)]
         self.generator.manual_seed(step_seed(config.seed, first))
         backgrounds = [self._step_background() for _ in range(count)]
-        if self.graphs is not None and count == 1 and self.graphs.take(first, views[0], backgrounds[0]):
+        # A replayed step renders one view per process; a timed step (several processes) runs as
+        # before, its parts timed apart.
+        replayable = self.graphs is not None and count == self.ranks.world and not timed
+        if replayable and self.graphs.take(first, views, backgrounds):
             self.step = last
             self.step_events = []
             self.strategy.after_step(self._context(last), self.strategy_state)
             return {}
         if self.statistics is not None:
-            self.statistics.begin(self.strategy_state)
+            self.statistics.begin(self.strategy_state, halts=self.lookahead is not None)
         visible = None
         seen = []  # (loss, PSNR, context) of each view, recorded once every view of the step is rendered
         for position in my_positions(count, self.ranks.rank, self.ranks.world):
@@ -649,14 +654,18 @@ class Trainer:
                 info = view[2].info
                 visible = info.visible if visible is None else visible | info.visible
         # After the step's last render: with --sync-free, a halt that a later view of the batch sets
-        # also stops the earlier views' records (the step is taken again from its first view).
+        # also stops the earlier views' records (the step is taken again from its first view). On
+        # several processes the halt of any process reaches every one with the all-reduce, which
+        # holds back the statistics' additions (StatisticsSync.finish) and comes before the guard's
+        # records.
         halt = None if self.lookahead is None else self.lookahead.halt
-        for loss, image_psnr, ctx in seen:
-            self.guard.record(loss, image_psnr, halt)
+        for _, _, ctx in seen:
             self.strategy.observe(ctx, self.strategy_state)
         if config.optimizer == "selective" and visible is None:
             visible = torch.zeros(self.model.num, dtype=torch.bool, device=self.device)
-        self._reduce(count, visible, timed)
+        self._reduce(count, visible, timed, cameras=[self.cameras[view] for view in views])
+        for loss, image_psnr, _ in seen:
+            self.guard.record(loss, image_psnr, halt)
         self.step = last
         self.step_events = []
         for iteration in range(first, last + 1):
@@ -673,7 +682,8 @@ class Trainer:
                     log["refine_seconds"] = time.perf_counter() - refine_start
                     self.step_events.append((iteration, log))
                 if self.statistics is not None:
-                    self.statistics.begin(self.strategy_state)  # the new Gaussians' statistics
+                    # the new Gaussians' statistics
+                    self.statistics.begin(self.strategy_state, halts=self.lookahead is not None)
         halt = {} if self.lookahead is None else {"halt": self.lookahead.halt}
         if config.optimizer == "selective":
             self.optimizer.step(self._visible if self._visible.shape[0] == self.model.num else None, **halt)
@@ -735,9 +745,13 @@ class Trainer:
     def _settle(self) -> bool:
         """Read the device's flags (one host synchronisation). When an iteration halted, go back to
         it (its overflowed view is rendered with the count the device recorded) and return True;
-        when it met NaN, stop as a render that reads its count does."""
-        halted = self.lookahead.read()
+        when it met NaN, stop as a render that reads its count does. On several processes every
+        process reads at the same iterations, and they agree (:meth:`_agree_on_halt`)."""
+        distributed = self.ranks.distributed
+        halted = self.lookahead.read(always=distributed)
         snapshots, self._snapshots = self._snapshots, {}
+        if distributed:
+            halted = self._agree_on_halt(halted)
         if halted is None:
             return False
         start = max(step for step in snapshots if step <= halted.step)
@@ -755,6 +769,23 @@ class Trainer:
             self._nonfinite_at = halted.step
             raise self._nonfinite_error()
         return True
+
+    def _agree_on_halt(self, halted: Halted | None) -> Halted | None:
+        """On several processes, at a read: every process's counts (so that all know the same ones,
+        and a replayed step is taken by all or by none) and their halts, in one exchange. The
+        earliest halted iteration of any process is the one all go back to; NaN there stops all.
+        A process whose halt came only from another's (through the all-reduce) reports none."""
+        own = None if halted is None or halted.cause == 0 else (halted.step, halted.cause, halted.count)
+        reports = self.ranks.all_gather_object((self.lookahead.known(), own))
+        self.lookahead.merge([known for known, _ in reports])
+        halts = [report for _, report in reports if report is not None]
+        if not halts:
+            if halted is not None:
+                raise RuntimeError("a process's halt flag was set, yet no process recorded the render that set it")
+            return None
+        step = min(h[0] for h in halts)
+        cause = max(h[1] for h in halts if h[0] == step)  # NaN (2 + input) before an overflow (1)
+        return Halted(step, cause, max(h[2] for h in halts if h[0] == step))
 
     def _settle_in_step(self) -> None:
         """:meth:`_settle` inside a step: going back ends the step (:class:`_Rewound`)."""
@@ -775,15 +806,17 @@ class Trainer:
             image, _, info = self._render(view_index, background, scale, capacity)
         except NonFiniteError:
             # The render checks the parameters it reads: the last update made them non-finite,
-            # unless an earlier iteration halted (--sync-free), which is then taken again.
-            self._settle_in_step()
+            # unless an earlier iteration halted (--sync-free), which is then taken again. On
+            # several processes a read is a collective, which this process alone cannot take: the
+            # processes stop together at the next check.
             if self.ranks.distributed:
                 self._nonfinite_at = self._nonfinite_at or iteration
                 return None
+            self._settle_in_step()
             self._nonfinite_at = iteration
             raise self._nonfinite_error() from None
         if lookahead is not None and capacity is None:
-            lookahead.counted(view_index, info.num_intersections, self.model.num, scale)
+            lookahead.counted(view_index, info.num_intersections, self.model.num, scale, iteration)
         elif lookahead is not None:
             lookahead.note(info, iteration, view_index, self.model.num, scale)
         photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
@@ -793,8 +826,55 @@ class Trainer:
         regularizer = self.strategy.regularizer(ctx)
         if regularizer is not None:
             loss = loss + regularizer
-        loss.backward()  # each view's full gradient; _reduce averages them
+        self._backward(loss, info)  # each view's full gradient; _reduce averages them
         return loss, image_psnr, ctx
+
+    @property
+    def _exchanges_colours(self) -> bool:
+        return self.ranks.distributed and self.config.dist_exchange == "colours"
+
+    def _backward(self, loss: torch.Tensor, info) -> None:
+        """Back-propagate one view's loss; with ``--dist-exchange colours``, keep its colours'
+        gradient as the SH adjoint reads it (zero where the colour was clamped at 0 or the
+        Gaussian culled), for the other processes (:meth:`_rebuild_sh_gradients`)."""
+        if not self._exchanges_colours:
+            loss.backward()
+            return
+        info.colors.retain_grad()
+        loss.backward()
+        grad = info.colors.grad
+        if grad is None:
+            grad = torch.zeros_like(info.colors)
+        passes = (info.colors > 0) & (info.radii[:, :1] > 0)
+        self._colour_grads.append(torch.where(passes, grad, torch.zeros((), device=grad.device)))
+
+    def _rebuild_sh_gradients(self, count: int, cameras) -> int:
+        """``--dist-exchange colours``: gather every process's colour gradients of the step's
+        ``count`` views (``cameras``, in batch order) and set the spherical harmonics' gradients to
+        the mean of the views' SH adjoints, summed in batch order on every process (so that all get
+        the same bits). Returns the bytes gathered."""
+        world, num = self.ranks.world, self.model.num
+        slots = -(-count // world)  # views per process, the last ones padded with zeros
+        mine = torch.zeros(slots, num, 3, device=self.device)
+        for slot, grad in enumerate(self._colour_grads):
+            mine[slot].copy_(grad)
+        self._colour_grads = []
+        gathered = self.ranks.all_gather_(mine)  # [world, slots, N, 3]
+        params = self.model.params
+        means, sh_dc, sh_rest = (params[name].detach() for name in ("means", "sh_dc", "sh_rest"))
+        passing_radii = torch.ones(num, 2, dtype=torch.int32, device=self.device)
+        passing_colors = torch.ones(num, 3, device=self.device)  # the gradients are masked already
+        total_dc = total_rest = None
+        for position in range(count):
+            grad = gathered[position % world, position // world]
+            _, dc, rest = sh_adjoint(
+                means, sh_dc, sh_rest, self.model.sh_degree, cameras[position], passing_radii, passing_colors, grad
+            )
+            total_dc = dc if total_dc is None else total_dc + dc
+            total_rest = rest if total_rest is None else total_rest + rest
+        params["sh_dc"].grad = total_dc.div_(count)
+        params["sh_rest"].grad = total_rest.div_(count)
+        return 4 * gathered.numel()
 
     def _loss(self, image: torch.Tensor, photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(the photometric loss of a render against its uint8 photo, the render's PSNR)."""
@@ -805,20 +885,39 @@ class Trainer:
         target = photo.float() / 255.0
         return photometric_loss(image, target, config.ssim_weight), psnr(image.detach(), target)
 
-    def _reduce(self, count: int, visible: torch.Tensor | None, timed: bool) -> None:
+    def _reduce(
+        self,
+        count: int,
+        visible: torch.Tensor | None,
+        timed: bool,
+        flags: torch.Tensor | None = None,
+        cameras: list | None = None,
+    ) -> None:
         """Average the step's gradients over its ``count`` views (on several processes: one flat
-        all-reduce that also carries the statistics' additions, the visible masks and the flags)."""
+        all-reduce that also carries the statistics' additions, the visible masks and the flags:
+        a pending signal, a render that met NaN and, with --sync-free, the halt). ``flags``: those
+        three on the device already (a replayed step's); by default set from the host's state.
+        With ``--dist-exchange colours`` the spherical harmonics' gradients stay out of the
+        all-reduce and are rebuilt from the views' colour gradients (``cameras``: the step's views'
+        cameras, in batch order)."""
         params = [group["params"][0] for group in self.optimizer.param_groups]
+        colours = self._exchanges_colours
+        if colours:
+            sh = {id(self.model.params[name]) for name in ("sh_dc", "sh_rest")}
+            params = [p for p in params if id(p) not in sh]
         self._visible = visible
         if not self.ranks.distributed:
             self.ranks.reduce_gradients(params, count)
             return
-        # Set on the device: torch.tensor(..., device=cuda) copies from pageable memory, which
-        # waits for the stream, and the host would lose its lead on the GPU at every step.
-        flags = torch.zeros(2, device=self.device)
-        for index, raised in enumerate((self.signals.pending is not None, self._nonfinite_at is not None)):
-            if raised:
-                flags[index] = 1.0
+        if flags is None:
+            # Set on the device: torch.tensor(..., device=cuda) copies from pageable memory, which
+            # waits for the stream, and the host would lose its lead on the GPU at every step.
+            flags = torch.zeros(3, device=self.device)
+            for index, raised in enumerate((self.signals.pending is not None, self._nonfinite_at is not None)):
+                if raised:
+                    flags[index] = 1.0
+            if self.lookahead is not None:
+                flags[2:].copy_(self.lookahead.halt)
         extras = [*self.statistics.deltas(self.strategy_state), flags]
         if visible is not None:
             extras.append(visible.float())
@@ -836,7 +935,15 @@ class Trainer:
         if visible is not None:
             self._visible = reduced.pop() > 0
         self._flags = reduced.pop()
-        self.statistics.finish(self.strategy_state, reduced)
+        halt = None
+        if self.lookahead is not None:  # any process's halt stops every process's updates
+            halt = self.lookahead.halt
+            torch.maximum(halt, (self._flags[2:] > 0).to(halt.dtype), out=halt)
+        self.statistics.finish(self.strategy_state, reduced, halt)
+        if colours:
+            gathered = self._rebuild_sh_gradients(count, cameras)
+            if timed:
+                self._reduce_bytes += gathered
         if timed:
             self._synchronize()
             self._reduce_ms = (time.perf_counter() - start) * 1e3
@@ -887,6 +994,11 @@ class Trainer:
             finished = True
             return result
         finally:
+            if self.graphs is not None:
+                # A graph that captured NCCL's all-reduce must go before its process group: a
+                # 2-GPU run whose last steps were replayed hung at the group's destruction.
+                self.graphs.release()
+                self._synchronize()
             if self._given_ranks is None:
                 self.ranks.close(wait=finished)
 
