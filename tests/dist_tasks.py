@@ -114,7 +114,10 @@ def first_step_gradients(
     rank, world, scene, out, batch_size=2, strategy="3dgs", device="cpu", backend="auto", sh_degree=None, **overrides
 ):
     """The gradients of the first step after the reduction, before the optimizer step (on the CPU);
-    ``sh_degree``: the spherical harmonics' degree of that step (its schedule's otherwise)."""
+    ``sh_degree``: the spherical harmonics' degree of that step (its schedule's otherwise), with
+    random higher coefficients and half the Gaussians' colours clamped at 0."""
+    import torch
+
     from cdcgs.train.trainer import Trainer
 
     config = task_config(
@@ -137,6 +140,11 @@ def first_step_gradients(
     trainer._setup()
     if sh_degree is not None:
         trainer.model.sh_degree = sh_degree
+        with torch.no_grad():  # the higher coefficients nonzero, and half the Gaussians' colours clamped at 0
+            draws = torch.Generator().manual_seed(1)
+            sh_rest = trainer.model.params["sh_rest"]
+            sh_rest.copy_(0.3 * torch.randn(sh_rest.shape, generator=draws).to(sh_rest.device))
+            trainer.model.params["sh_dc"][::2] -= 2.0
     real_step = trainer.optimizer.step
     trainer.optimizer.step = spy
     trainer.train_step()
@@ -168,13 +176,16 @@ def train(
     die_at=None,
     perturb_at=None,
     tight_slots=False,
+    viewer_on_rank_0=False,
     **overrides,
 ):
     """A whole run; the parameters' checksums after every step, the final parameters, and the
     files each rank wrote. ``stop_at``: this rank sends itself SIGTERM after that iteration;
     ``die_at``: rank 1 exits at once there; ``perturb_at``: rank 1 changes a parameter there;
     ``tight_slots``: with --sync-free, slots of exactly the last count, so that renders of grown
-    Gaussians overflow and the run goes back."""
+    Gaussians overflow and the run goes back; ``viewer_on_rank_0``: the steps replayed by default on
+    the CPU too (as on CUDA), and rank 0 alone given a callback that renders beside the training
+    (as the viewer is), which refuses them there."""
     import torch
 
     from cdcgs.train import lookahead, outputs
@@ -193,12 +204,13 @@ def train(
             return _real(*args, **kwargs)
 
         setattr(module, name, spy)
-    checksums, sent = [], []
+    checksums, sent, flag_buffers = [], [], set()
     real_step = Trainer.train_step
 
     def step(self):
         result = real_step(self)
         checksums.append((self.step, _checksum(self.model.params)))
+        flag_buffers.add(self._flags.data_ptr())
         if stop_at is not None and rank == world - 1 and self.step >= stop_at and not sent:
             sent.append(self.step)
             os.kill(os.getpid(), signal.SIGTERM)
@@ -226,8 +238,30 @@ def train(
     if tight_slots:
         patched += [(lookahead, "MARGIN", lookahead.MARGIN), (lookahead, "FLOOR", lookahead.FLOOR)]
         lookahead.MARGIN, lookahead.FLOOR = 1.0, 0
+    callbacks = []
+    if viewer_on_rank_0:
+        real_refusal = trainer_module.graph_refusal
+        patched.append((trainer_module, "graph_refusal", real_refusal))
+        trainer_module.graph_refusal = lambda trainer, default=False: real_refusal(trainer)  # the CPU not refused
+        if rank == 0:
+
+            class Beside:  # what the viewer says of itself
+                renders_beside_training = True
+
+                def on_start(self, trainer):
+                    pass
+
+                def on_step(self, trainer):
+                    pass
+
+                def on_end(self, trainer):
+                    pass
+
+            callbacks.append(Beside())
     trainer = Trainer(
-        task_config(scene, out, strategy=strategy, **overrides), dict(SCHEDULE if options is None else options)
+        task_config(scene, out, strategy=strategy, **overrides),
+        dict(SCHEDULE if options is None else options),
+        callbacks=callbacks,
     )
     trainers.append(trainer)
     try:
@@ -243,6 +277,7 @@ def train(
         "writes": writes,
         "metrics": {k: result[k] for k in ("num_gaussians", "iterations", "processes", "batch_size")},
         "released_before_close": released,
+        "flag_buffers": len(flag_buffers),
         "sync_free": result.get("sync_free"),
         "cuda_graph": result.get("cuda_graph"),
         "test": result["test"],

@@ -200,6 +200,42 @@ def test_steps_that_read_no_count_on_two_processes_are_the_run_that_reads_every_
         # A graph that holds NCCL's all-reduce must go before the process group: 2-GPU runs whose
         # last steps were replayed hung at its destruction (2 x H200, 2026-11-27).
         assert r0["released_before_close"] == r1["released_before_close"] == [True]
+        # One buffer for the reduced flags: a replayed step writes the one the host reads.
+        assert r0["flag_buffers"] == r1["flag_buffers"] == 1
+
+
+def test_a_refusal_of_the_replayed_steps_on_one_process_holds_for_all(small_scene, runs_3dgs, tmp_path):
+    """Rank 0 alone has a callback that renders beside the training (the viewer), which refuses the
+    replayed steps there; the others would take them (here on the CPU as on CUDA). A replayed step
+    holds the all-reduce, which every process must replay together: all train without them, as the
+    run that reads every count, and say why."""
+    (counted, _), _, _ = runs_3dgs
+    r0, r1 = ok(run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", viewer_on_rank_0=True))
+    assert r0["checksums"] == r1["checksums"] == counted["checksums"]
+    assert "drop --view" in r0["cuda_graph"]["off"], r0["cuda_graph"]
+    assert "drop --view (on process 0, so on every process)" in r1["cuda_graph"]["off"], r1["cuda_graph"]
+    assert r0["sync_free"] is None and r1["sync_free"] is None
+
+
+def test_the_replayed_steps_refuse_gloo_on_a_gpu(monkeypatch):
+    """A replayed step captures its all-reduce, which gloo (host memory) cannot take part in.
+    Stand-ins for Warp's device and memory pool, so this runs on the CPU."""
+    from types import SimpleNamespace
+
+    import warp as wp
+
+    from cdcgs.train import graph
+    from cdcgs.train.distributed import Ranks
+    from cdcgs.train.graph import graph_refusal
+
+    monkeypatch.setattr(graph, "warp_device", lambda device: "cuda:0")
+    monkeypatch.setattr(wp, "is_mempool_supported", lambda device: True)
+
+    trainer = SimpleNamespace(
+        config=TrainConfig(batch_size=2), device=torch.device("cuda", 0), ranks=Ranks(0, 2, "gloo")
+    )
+    why, what = graph_refusal(trainer)
+    assert "gloo" in why and "NCCL" in what
 
 
 @pytest.mark.skipif(

@@ -73,6 +73,11 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
             "needs Warp's memory pool on the GPU (the step's sorts and scans allocate inside the capture)",
             "this GPU or driver has none",
         )
+    if trainer.device.type == "cuda" and trainer.ranks.distributed and trainer.ranks.backend != "nccl":
+        return (
+            f"captures the step's all-reduce, which {trainer.ranks.backend} (host memory) cannot take part in",
+            "use NCCL, a GPU per process (--dist-backend auto or nccl)",
+        )
     refusal = halt_refusal(config, trainer.strategy)
     if refusal is not None:
         return refusal

@@ -328,6 +328,7 @@ class Trainer:
         self.lpips = lpips_metric(self.device)
         kinds = self.strategy.statistics()
         self.statistics = StatisticsSync(self.ranks, kinds) if self.ranks.distributed else None
+        self._flags = torch.zeros(3, device=self.device)
         self.graphs = self._graph_steps()
         sync_free = config.sync_free or self.graphs is not None
         self.lookahead = Lookahead(self.device, len(self.scene.train)) if sync_free else None
@@ -355,6 +356,24 @@ class Trainer:
                     print(f"steps run without CUDA graphs: {self.graph_off}")
                 return None
         return GraphSteps(self)
+
+    def _agree_on_graphs(self) -> None:
+        """On several processes: replay steps on all of them or on none. A replayed step holds the
+        all-reduce, which NCCL needs every process to replay together, and a reason to refuse can
+        hold on one process only (rank 0's viewer). Where one refuses, all train without graphs,
+        and without --sync-free's slots unless it was asked for."""
+        reasons = self.ranks.all_gather_object(self.graph_off if self.graphs is None else None)
+        refused = [(rank, reason) for rank, reason in enumerate(reasons) if reason is not None]
+        if self.graphs is None or not refused:
+            return
+        rank, reason = refused[0]
+        self.graphs.release()
+        self.graphs = None
+        self.graph_off = f"{reason} (on process {rank}, so on every process)"
+        if not self.config.sync_free:
+            self.lookahead = None
+        if self.ranks.is_main and self.config.cuda_graph is None:
+            print(f"steps run without CUDA graphs: {self.graph_off}")
 
     def _check_sync_free(self) -> None:
         config = self.config
@@ -748,6 +767,11 @@ class Trainer:
         when it met NaN, stop as a render that reads its count does. On several processes every
         process reads at the same iterations, and they agree (:meth:`_agree_on_halt`)."""
         distributed = self.ranks.distributed
+        if distributed:
+            # A collective the process group's watchdog tracks, queued before the host waits: the
+            # replayed steps' collectives are not tracked, and a process that died would otherwise
+            # leave the others waiting here past --dist-timeout.
+            self.ranks.all_reduce_(torch.zeros(1, device=self.device))
         halted = self.lookahead.read(always=distributed)
         snapshots, self._snapshots = self._snapshots, {}
         if distributed:
@@ -776,11 +800,11 @@ class Trainer:
         earliest halted iteration of any process is the one all go back to; NaN there stops all.
         A process whose halt came only from another's (through the all-reduce) reports none."""
         own = None if halted is None or halted.cause == 0 else (halted.step, halted.cause, halted.count)
-        reports = self.ranks.all_gather_object((self.lookahead.known(), own))
-        self.lookahead.merge([known for known, _ in reports])
-        halts = [report for _, report in reports if report is not None]
+        reports = self.ranks.all_gather_object((self.lookahead.known(), own, halted is not None))
+        self.lookahead.merge([known for known, _, _ in reports])
+        halts = [report for _, report, _ in reports if report is not None]
         if not halts:
-            if halted is not None:
+            if any(flagged for _, _, flagged in reports):
                 raise RuntimeError("a process's halt flag was set, yet no process recorded the render that set it")
             return None
         step = min(h[0] for h in halts)
@@ -934,7 +958,7 @@ class Trainer:
         reduced = self.ranks.reduce_gradients(params, count, extras)
         if visible is not None:
             self._visible = reduced.pop() > 0
-        self._flags = reduced.pop()
+        self._flags.copy_(reduced.pop())  # one buffer: a replayed step writes the same one
         halt = None
         if self.lookahead is not None:  # any process's halt stops every process's updates
             halt = self.lookahead.halt
@@ -996,9 +1020,11 @@ class Trainer:
         finally:
             if self.graphs is not None:
                 # A graph that captured NCCL's all-reduce must go before its process group: a
-                # 2-GPU run whose last steps were replayed hung at the group's destruction.
+                # 2-GPU run whose last steps were replayed hung at the group's destruction. (After
+                # a failure no wait: a process that died would leave the others' wait unanswered.)
                 self.graphs.release()
-                self._synchronize()
+                if finished:
+                    self._synchronize()
             if self._given_ranks is None:
                 self.ranks.close(wait=finished)
 
@@ -1059,6 +1085,7 @@ class Trainer:
         self.ranks.all_ok(error, "set-up")
         if self.ranks.distributed:  # after the verdict: a collective inside the set-up could meet a failed one
             self._agree_on_lpips()
+            self._agree_on_graphs()
         try:  # agreed on too: a failed write stops every process with its cause, not by a timeout
             if self.ranks.is_main:
                 outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
