@@ -36,7 +36,6 @@ import json
 import os
 import re
 import shutil
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 
@@ -122,10 +121,19 @@ def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool 
         line = command(strategy, config, args, out, iters)
         where = f" (GPU {environment['CUDA_VISIBLE_DEVICES']})" if gpu is not None else ""
         print(f"{name}{where}: {' '.join(line[1:])}", flush=True)
+        limit = args.run_timeout or None
         if out == folder and args.device != "cpu":  # the timed run: is each of its GPUs its own?
-            status, seen = run_watched(line, run_gpus(environment, processes), cwd=ROOT, env=environment)
+            status, seen = run_watched(line, run_gpus(environment, processes), limit=limit, cwd=ROOT, env=environment)
         else:
-            status = subprocess.run(line, cwd=ROOT, env=environment).returncode
+            status, stopped = run_watched(line, [], limit=limit, cwd=ROOT, env=environment)
+            seen = {**seen, **{k: v for k, v in stopped.items() if k == "stopped_after"}}
+        if "stopped_after" in seen:
+            if out == folder and os.path.isfile(metrics_path):
+                # It wrote its results and then did not end (a process that hung at exit): the
+                # results stand, the table's note says so.
+                print(f"{name}: stopped after {limit:.0f} s; it had written its results but not ended", flush=True)
+                continue
+            raise SystemExit(f"scaling_table: {name} did not end within --run-timeout {limit:.0f} s; stopped")
         if status != 0:
             raise SystemExit(f"scaling_table: {name} failed (exit status {status}); see its output above")
     shutil.rmtree(scratch, ignore_errors=True)
@@ -199,6 +207,7 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
         "| LPIPS-Alex | Gaussians | peak GB / GPU | all-reduce | wait |",
         f"|---|---{run_rule}|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    notes: dict[float, bool] = {}  # --run-timeout of the runs stopped after writing their results
     first: dict[str, float] = {}  # the speed-ups' baseline: a strategy's first finished run alone
     shared_baseline = set()  # strategies whose baseline shared its GPU: their speed-ups are marked too
     for (strategy, config, ran), m in rows.items():
@@ -209,6 +218,10 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
     for (strategy, config, ran), m in rows.items():
         processes, batch = parse_config(config)
         label = f"{processes} × {batch}" + (" †" if names[(strategy, config, ran)] in shared else "")
+        stopped = (m.get("neighbours") or {}).get("stopped_after")
+        if stopped is not None:
+            label += " ‡"
+            notes[stopped] = True
         label += f" | {ran}" if side_by_side else ""
         if "skipped" in m:
             lines.append(f"| {strategy} | {label} | skipped: {m['skipped']} |" + " |" * 11)
@@ -227,6 +240,8 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
             f"| {_number(test.get('lpips_vgg'), 4)} | {_number(test.get('lpips_alex'), 4)} | {m['num_gaussians']:,} "
             f"| {_number(max(peaks), 2) if peaks else '—'} | {share} | {wait} |"
         )
+    for limit in notes:
+        lines += ["", f"‡ stopped after {limit:.0f} s: the run had written its results, but its processes did not end."]
     return "\n".join(lines) + "\n"
 
 
@@ -240,6 +255,12 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=20, help="iterations of the untimed launch before each run")
     parser.add_argument("--device", default="auto", help="auto (a GPU per process) or cpu")
     parser.add_argument(
+        "--run-timeout",
+        type=float,
+        default=1800.0,
+        help="seconds after which a launch is stopped (0: never); a timed run stopped after writing its results is kept, with a note",
+    )
+    parser.add_argument(
         "--side-by-side",
         action="store_true",
         help="run the one-GPU configs at the same time, each on a GPU of its own (they share the host)",
@@ -248,6 +269,8 @@ def main(argv=None) -> int:
     check_common_arguments(parser, args)
     if args.warmup < 0:
         parser.error(f"--warmup must not be negative, got {args.warmup}")
+    if args.run_timeout < 0:
+        parser.error(f"--run-timeout must not be negative, got {args.run_timeout}")
     if args.device not in ("auto", "cpu"):
         parser.error(f"--device must be auto or cpu, got {args.device!r}")
     if args.side_by_side and args.device == "cpu":

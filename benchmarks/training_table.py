@@ -39,6 +39,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -132,13 +133,18 @@ def gpu_process_count(gpu: str) -> int | None:
     return sum(1 for pid in pids if pid != os.getpid())  # this table's own process is not a neighbour
 
 
-def run_watched(cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, **kwargs) -> tuple[int, dict]:
+def run_watched(
+    cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, limit: float | None = None, **kwargs
+) -> tuple[int, dict]:
     """Run ``cmd`` (one process on each of ``gpus``, as nvidia-smi names them) to its end, looking
     every ``every`` seconds at how many processes compute on each. Returns (exit status, what was
     seen): ``looks`` (those that saw the run's own process on a GPU: at least one process there)
     and ``most_others`` (the largest count beyond it on any GPU); ``most_others`` is None when no
-    look saw the run (nvidia-smi missing, or blind to this container's processes): not checked."""
+    look saw the run (nvidia-smi missing, or blind to this container's processes): not checked.
+    ``limit``: seconds after which the run is stopped (its whole process group); what was seen
+    then says ``stopped_after`` and the status is the stopped process's."""
     looks, most_others = 0, None
+    started = time.monotonic()
     # A session of its own, so that a stop reaches every process of the run (torchrun's workers
     # start sessions of their own too: the agent forwards SIGTERM to them).
     with subprocess.Popen(cmd, start_new_session=True, **kwargs) as process:
@@ -149,6 +155,14 @@ def run_watched(cmd: list[str], gpus: list[str], every: float = WATCH_EVERY, **k
                     break
                 except subprocess.TimeoutExpired:
                     pass
+                if limit is not None and time.monotonic() - started > limit:
+                    stop_group(process)
+                    return process.returncode, {
+                        "gpus": list(gpus),
+                        "looks": looks,
+                        "most_others": most_others,
+                        "stopped_after": limit,
+                    }
                 counts = [count for count in map(gpu_process_count, gpus) if count]  # 0: not there (yet)
                 if counts:
                     looks += 1

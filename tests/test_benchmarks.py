@@ -392,6 +392,49 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
             scaling_table.main([*argv, *bad])
 
 
+def test_a_run_past_its_limit_is_stopped_and_one_that_wrote_its_results_is_kept(tmp_path, monkeypatch, capsys):
+    """--run-timeout: a launch that does not end is stopped with its whole process group; a timed
+    run that had written its results (a 2-GPU run hung at exit once) is kept, marked ‡ with a note;
+    one that had not stops the table with the reason."""
+    import scaling_table
+    import training_table
+
+    start = time.monotonic()
+    status, seen = training_table.run_watched(
+        [sys.executable, "-c", "import time; time.sleep(60)"], [], every=0.1, limit=1.0
+    )
+    assert seen["stopped_after"] == 1.0 and status != 0 and time.monotonic() - start < 20
+
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
+    out = tmp_path / "runs"
+    argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "8", "--device", "cpu"]
+    argv += ["--warmup", "0", "--configs", "1x1"]
+    real = scaling_table.run_watched
+
+    def hangs_after_its_results(line, gpus, **kwargs):  # the real run, then a process that does not end
+        real(line, gpus, **kwargs)
+        return real([sys.executable, "-c", "import time; time.sleep(60)"], gpus, every=0.1, limit=kwargs["limit"])
+
+    monkeypatch.setattr(scaling_table, "run_watched", hangs_after_its_results)
+    docs = tmp_path / "dist.md"
+    docs.write_text(f"{scaling_table.BEGIN}\n{scaling_table.END}\n")
+    assert scaling_table.main([*argv, "--run-timeout", "2", "--docs", str(docs)]) == 0
+    assert "stopped after 2 s; it had written its results but not ended" in capsys.readouterr().out
+    text = docs.read_text()
+    assert "| 3dgs | 1 × 1 ‡ |" in text and "‡ stopped after 2 s" in text
+    monkeypatch.setattr(
+        scaling_table,
+        "run_watched",
+        lambda line, gpus, **kwargs: real(
+            [sys.executable, "-c", "import time; time.sleep(60)"], gpus, every=0.1, limit=kwargs["limit"]
+        ),
+    )
+    with pytest.raises(SystemExit, match="did not end within --run-timeout 1 s"):
+        scaling_table.main([*argv, "--run-timeout", "1", "--retrain", "--out", str(tmp_path / "other")])
+    with pytest.raises(SystemExit):
+        scaling_table.main([*argv, "--run-timeout", "-1"])
+
+
 def test_scaling_table_side_by_side_gives_each_one_gpu_run_a_gpu_of_its_own(tmp_path, monkeypatch):
     """Two stand-in GPUs (this machine's runs go to the CPU with --device auto): the one-GPU runs
     overlap in time, each seeing one of the parent's visible GPUs; the baseline then runs alone,
