@@ -4,7 +4,7 @@ import warp as wp
 
 from .projection import Camera
 
-__all__ = ["note_render_kernel", "select_camera_kernel"]
+__all__ = ["note_render_kernel", "select_camera_at_kernel"]
 
 
 @wp.kernel(enable_backward=False)
@@ -46,23 +46,14 @@ def note_render_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def select_camera_kernel(
-    cameras: wp.array(dtype=Camera),
-    where: wp.array(dtype=wp.int32),
-    camera_out: wp.array(dtype=Camera),
-):
-    """One thread: ``camera_out[0] = cameras[where[1]]``, the camera of the view that a step
-    replayed as a CUDA graph renders (its host writes ``where`` before the replay)."""
-    camera_out[0] = cameras[where[1]]
-
-
-@wp.kernel(enable_backward=False)
 def select_camera_at_kernel(
     cameras: wp.array(dtype=Camera),
     where: wp.array(dtype=wp.int32),
     entry: int,
     camera_out: wp.array(dtype=Camera),
 ):
-    """One thread: ``camera_out[0] = cameras[where[entry]]``: on several processes, the camera of
-    another view of a replayed step (``--dist-exchange colours`` rebuilds its SH gradients)."""
+    """One thread: ``camera_out[0] = cameras[where[entry]]``: the camera of a view of a step replayed
+    as a CUDA graph (its host writes ``where`` before the replay): entry 1 the view it renders; on
+    several processes, the step's other views (``--dist-exchange colours`` rebuilds their SH
+    gradients)."""
     camera_out[0] = cameras[where[entry]]

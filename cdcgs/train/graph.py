@@ -11,7 +11,7 @@ rates, writes them into pinned memory and queues two small copies and the replay
 What a captured step reads that changes from step to step lives on the device:
 
 - ``where`` (int32 [2]): the iteration and the view, copied from the host before each replay; a
-  kernel (:data:`cdcgs.kernels._lookahead.select_camera_kernel`) copies that view's camera into a
+  kernel (:data:`cdcgs.kernels._lookahead.select_camera_at_kernel`) copies that view's camera into a
   one-camera array that the projection and SH kernels read
   (:attr:`cdcgs.render.PreparedCamera.on_device`), and the photo is picked from the stacked
   training photos by the same index;
@@ -42,7 +42,7 @@ from torch.autograd.graph import increment_version
 
 from .._interop import launch, warp_device, warp_scope, wp_arg
 from ..errors import OptionError
-from ..kernels._lookahead import select_camera_at_kernel, select_camera_kernel
+from ..kernels._lookahead import select_camera_at_kernel
 from ..kernels.adam import adam_quads
 from ..kernels.projection import Camera
 from ..render import rasterize
@@ -232,7 +232,8 @@ class GraphSteps:
         self.captures += 1
         trainer.optimizer.zero_grad(set_to_none=True)
         cameras = self._tables_at(scale)[0]  # Warp allocates them: not inside the capture
-        self._batch_slots = [wp.empty(1, dtype=Camera, device=cameras.device) for _ in range(trainer.ranks.world)]
+        if trainer._exchanges_colours:  # the step's views' cameras, for their SH adjoints
+            self._batch_slots = [wp.empty(1, dtype=Camera, device=cameras.device) for _ in range(trainer.ranks.world)]
         if not self.cuda:
             self.key = key
             return
@@ -290,7 +291,7 @@ class GraphSteps:
         if distributed:
             trainer.statistics.begin(trainer.strategy_state, halts=True)
         with warp_scope(self.device):
-            launch(select_camera_kernel, 1, inputs=[cameras, wp_arg(self.where, wp.int32)], outputs=[current])
+            launch(select_camera_at_kernel, 1, inputs=[cameras, wp_arg(self.where, wp.int32), 1], outputs=[current])
         image, _, info = rasterize(
             **trainer.model.render_args(),
             camera=prepared,

@@ -682,7 +682,8 @@ class Trainer:
             self.strategy.observe(ctx, self.strategy_state)
         if config.optimizer == "selective" and visible is None:
             visible = torch.zeros(self.model.num, dtype=torch.bool, device=self.device)
-        self._reduce(count, visible, timed, cameras=[self.cameras[view] for view in views])
+        cameras = [self.cameras[view] for view in views] if self._exchanges_colours else None
+        self._reduce(count, visible, timed, cameras=cameras)
         for loss, image_psnr, _ in seen:
             self.guard.record(loss, image_psnr, halt)
         self.step = last
@@ -879,10 +880,9 @@ class Trainer:
         the same bits). Returns the bytes gathered."""
         world, num = self.ranks.world, self.model.num
         slots = -(-count // world)  # views per process, the last ones padded with zeros
-        mine = torch.zeros(slots, num, 3, device=self.device)
-        for slot, grad in enumerate(self._colour_grads):
-            mine[slot].copy_(grad)
-        self._colour_grads = []
+        grads, self._colour_grads = self._colour_grads, []
+        grads += [torch.zeros(num, 3, device=self.device)] * (slots - len(grads))
+        mine = torch.stack(grads)
         gathered = self.ranks.all_gather_(mine)  # [world, slots, N, 3]
         params = self.model.params
         means, sh_dc, sh_rest = (params[name].detach() for name in ("means", "sh_dc", "sh_rest"))
