@@ -35,6 +35,7 @@ import datetime
 import json
 import os
 import re
+import shlex
 import shutil
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -199,9 +200,11 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
         else f"one after another on {machine}"
     )
     run_header, run_rule = ("| run ", "|---") if side_by_side else ("", "")
+    # what every run was trained with beyond the defaults: the table is read without its command
+    options = "".join(f" --train-option={shlex.quote(option)}" for option in args.train_options)
     lines = [
         f"{scene}, {args.iters:,} views seen per run, {how}{sharing}, {day}, "
-        f"commit {commit()} (`python benchmarks/scaling_table.py`):",
+        f"commit {commit()} (`python benchmarks/scaling_table.py{options}`):",
         "",
         f"| strategy | GPUs × batch {run_header}| steps | training | images/s | speed-up | PSNR | SSIM | LPIPS-VGG "
         "| LPIPS-Alex | Gaussians | peak GB / GPU | all-reduce | wait |",

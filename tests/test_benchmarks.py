@@ -373,13 +373,17 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
     docs.write_text(f"# Dist\n\n{scaling_table.BEGIN}\nold\n{scaling_table.END}\nafter\n")
     out = tmp_path / "runs"
     argv = ["--data", str(scene), "--out", str(out), "--strategies", "3dgs", "--iters", "8", "--docs", str(docs)]
-    argv += ["--device", "cpu", "--warmup", "0", "--configs", "1x1", "2x2"]
+    argv += ["--device", "cpu", "--warmup", "0", "--configs", "1x1", "2x2", "--train-option=--dist-exchange=colours"]
     assert scaling_table.main(argv) == 0
     one, two = (json.loads((out / f"3dgs-{c}" / "metrics.json").read_text()) for c in ("1x1", "2x2"))
     assert (one["processes"], one["batch_size"], two["processes"], two["batch_size"]) == (1, 1, 2, 2)
     assert one["iterations"] == two["iterations"] == 8, "every config sees the same number of views"
     text = docs.read_text()
     assert "old" not in text and text.endswith("after\n")
+    assert "(`python benchmarks/scaling_table.py --train-option=--dist-exchange=colours`)" in text, (
+        "what the runs ran with"
+    )
+    assert json.loads((out / "3dgs-2x2" / "config.json").read_text())["train"]["dist_exchange"] == "colours"
     rows = [line for line in text.splitlines() if line.startswith("| 3dgs |")]
     assert rows[0].startswith("| 3dgs | 1 × 1 | 8 |") and "| 1.00× |" in rows[0]
     assert rows[1].startswith("| 3dgs | 2 × 2 | 4 |") and f"{two['num_gaussians']:,}" in rows[1]
@@ -491,7 +495,7 @@ def test_scaling_table_takes_speed_ups_only_against_a_run_alone():
     speed-up, not one against a run that shared the host; runs alone give the baseline."""
     import scaling_table
 
-    args = argparse.Namespace(data="scene", images="images", iters=100)
+    args = argparse.Namespace(data="scene", images="images", iters=100, train_options=[])
 
     def run(seconds):
         return {"iterations": 100, "train_seconds": seconds, "num_gaussians": 10, "test": {}}

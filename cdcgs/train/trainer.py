@@ -68,8 +68,10 @@ def crossed(before: int, after: int, every: int) -> bool:
 
 
 # How often the data-parallel step times its all-reduce (a synchronisation before and after it):
-# one step in this many, for metrics.json's communication share.
-TIME_COMMUNICATION_EVERY = 50
+# one step in this many, for metrics.json's communication share. A timed step runs eagerly, not
+# replayed: on 4 × H200 (2026-11-27) one took 11.8 ms against 3.8 ms replayed, so one in 50 cost
+# about 3.5% of a 2-GPU bonsai training; one in 250 still times 60 steps of 15,000.
+TIME_COMMUNICATION_EVERY = 250
 
 
 def _upgrade_checkpoint(state: dict, path: str) -> dict:
