@@ -313,6 +313,24 @@ def test_ranks_that_drift_apart_stop(small_scene, tmp_path):
     assert "iteration 6" in outs[0]["message"]
 
 
+def test_replayed_steps_of_two_views_per_process_are_the_eager_ones(small_scene, tmp_path):
+    """Batches of 4 on two processes: each replays its two views in one graph with the step's
+    all-reduce, and trains the eager steps' bits; a batch that the processes do not divide is
+    refused by --cuda-graph, naming the option."""
+    runs = {}
+    for name, options in (("eager", {}), ("graph", {"cuda_graph": True})):
+        two = run_ranks(
+            "train", 2, tmp_path, scene=small_scene, out=tmp_path / name, iters=LONGER, batch_size=4, **options
+        )
+        runs[name] = ok(two)
+    eager, replayed = runs["eager"], runs["graph"]
+    assert replayed[0]["checksums"] == replayed[1]["checksums"] == eager[0]["checksums"]
+    assert replayed[0]["cuda_graph"]["replayed_steps"] == replayed[1]["cuda_graph"]["replayed_steps"] > 0
+    outs = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "odd", batch_size=3, cuda_graph=True)
+    assert [o.get("error") for o in outs] == ["OptionError", "OptionError"], outs
+    assert "--batch-size that 2 processes divide, not 3" in outs[0]["message"]
+
+
 def test_a_batch_smaller_than_the_processes_is_refused(small_scene, tmp_path):
     outs = run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "run", batch_size=1)
     assert [o.get("error") for o in outs] == ["OptionError", "OptionError"]

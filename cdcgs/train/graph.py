@@ -3,15 +3,18 @@
 
 A step's host work (Python, torch's autograd, some sixty launches) takes about as long as its
 kernels below a million Gaussians, so the GPU waits for the host. With ``--cuda-graph`` the step
-of one view (render into slots, the note of its count, the loss, the backward pass, the guard's
-record, the strategy's statistics, one Adam launch) is captured once under ``torch.cuda.graph``,
+(for each of the process's views of the batch: render into slots, the note of its count, the loss,
+the backward pass; then the strategy's statistics, the average over the batch, the guard's records,
+one Adam launch) is captured once under ``torch.cuda.graph``,
 Warp told of the capture, and replayed: per step the host only picks the view and computes Adam's
 rates, writes them into pinned memory and queues two small copies and the replay.
 
 What a captured step reads that changes from step to step lives on the device:
 
-- ``where`` (int32 [2]): the iteration and the view, copied from the host before each replay; a
-  kernel (:data:`cdcgs.kernels._lookahead.select_camera_at_kernel`) copies that view's camera into a
+- ``where`` (int32): the iteration and the view of each view the process renders in the step
+  (``--batch-size`` over the processes: one pair each), then the flags and the step's views,
+  copied from the host before each replay; a kernel
+  (:data:`cdcgs.kernels._lookahead.select_camera_at_kernel`) copies a view's camera into a
   one-camera array that the projection and SH kernels read
   (:attr:`cdcgs.render.PreparedCamera.on_device`), and the photo is picked from the stacked
   training photos by the same index;
@@ -46,6 +49,7 @@ from ..kernels._lookahead import select_camera_at_kernel
 from ..kernels.adam import adam_quads
 from ..kernels.projection import Camera
 from ..render import rasterize
+from .distributed import my_positions
 from .lookahead import READ_EVERY, halt_refusal
 from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
@@ -56,7 +60,13 @@ __all__ = ["GraphSteps", "graph_refusal"]
 # a slot is never rewritten before its copy has run.
 RING = 256
 assert READ_EVERY < RING
-WHERE_VIEWS = 4  # where the step's views begin in ``where``
+
+
+def where_layout(views_per_process: int) -> tuple[int, int]:
+    """Where ``where``'s two flags (a signal is pending, a render met NaN) begin, and where the
+    step's views in batch order begin, after one (iteration, view) pair per view of the process."""
+    flags = 2 * views_per_process
+    return flags, flags + 2
 
 
 def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
@@ -86,12 +96,10 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
     if not isinstance(trainer.optimizer, FusedAdam):
         return "launches FusedAdam itself", "use --optimizer adam or selective"
     world = trainer.ranks.world
-    if config.batch_size != world:
-        if world == 1:
-            return "captures a step of one view", f"drop --batch-size {config.batch_size}"
+    if config.batch_size % world:
         return (
-            "captures a step of one view per process",
-            f"use --batch-size {world} with {world} processes, not {config.batch_size}",
+            "captures a step of as many views on every process",
+            f"use a --batch-size that {world} processes divide, not {config.batch_size}",
         )
     if config.background == "random":
         return "needs a fixed background", "--background random draws one each step"
@@ -123,9 +131,13 @@ class GraphSteps:
         if refusal is not None:
             raise OptionError(f"--cuda-graph {refusal[0]}: {refusal[1]}")
         pinned = self.cuda
-        # (iteration, view, a signal is pending, a render met NaN, the step's views in batch order):
-        # the flags for the all-reduce, the views for --dist-exchange colours
-        entries = WHERE_VIEWS + trainer.ranks.world
+        # (iteration, view) of each view this process renders, (a signal is pending, a render met
+        # NaN), the step's views in batch order: the flags for the all-reduce, the views for
+        # --dist-exchange colours
+        self.batch = trainer.config.batch_size
+        self.mine = self.batch // trainer.ranks.world  # views a process renders a step
+        self._flag_entry, self._views_entry = where_layout(self.mine)
+        entries = self._views_entry + self.batch
         self.where = torch.zeros(entries, dtype=torch.int32, device=self.device)
         self._where_ring = torch.zeros(RING, entries, dtype=torch.int32, pin_memory=pinned)
         self._where_slots = self._where_ring.numpy()
@@ -149,7 +161,7 @@ class GraphSteps:
         included, which change only at refinements, where no step is replayed."""
         trainer = self.trainer
         strategy = trainer.strategy
-        iterations = range(iteration, iteration + trainer.ranks.world)  # one view per process
+        iterations = range(iteration, iteration + self.batch)
         signature = strategy.graph_signature(iteration)
         if signature is None or any(strategy.refines_at(i) for i in iterations):
             return None
@@ -169,10 +181,12 @@ class GraphSteps:
         return (signature, trainer.model.sh_degree, scale, trainer.model.num, tuple(addresses))
 
     def take(self, first: int, views: list[int], backgrounds: list[torch.Tensor]) -> bool:
-        """Take the step that begins at iteration ``first`` (one view per process: ``views`` and
+        """Take the step that begins at iteration ``first`` (a whole batch: ``views`` and
         ``backgrounds``, in batch order) as a replayed step and return True, or return False: the
         trainer takes it as before. On several processes every process decides alike, from what
-        all of them know (the counts agreed at the last read), so that they replay together."""
+        all of them know (the counts agreed at the last read), so that they replay together.
+        A process renders the batch's positions rank, rank + processes, ...; their backgrounds
+        are one colour (the graph holds it)."""
         trainer = self.trainer
         ranks = trainer.ranks
         scale = trainer._downscale(first)
@@ -188,11 +202,10 @@ class GraphSteps:
             return False  # a first render at this scale reads the count
         if key != self.key or max(needs) > self.capacity:
             self._capture(key, scale, backgrounds[ranks.rank])
-        iteration, view = first + ranks.rank, views[ranks.rank]
+        positions = my_positions(self.batch, ranks.rank, ranks.world)
         slot = first % RING
         self._where_slots[slot] = (
-            iteration,
-            view,
+            *(value for p in positions for value in (first + p, views[p])),
             trainer.signals.pending is not None,
             trainer._nonfinite_at is not None,
             *views,
@@ -200,7 +213,8 @@ class GraphSteps:
         self._rates_slots[slot] = trainer.optimizer.advance(self._params)
         self.where.copy_(self._where_ring[slot], non_blocking=True)
         self._rates.copy_(self._rates_ring[slot], non_blocking=True)
-        lookahead.replayed(view, trainer.model.num, scale, iteration)
+        for p in positions:
+            lookahead.replayed(views[p], trainer.model.num, scale, first + p)
         if self.cuda:
             self.graph.replay()
         else:
@@ -233,7 +247,7 @@ class GraphSteps:
         trainer.optimizer.zero_grad(set_to_none=True)
         cameras = self._tables_at(scale)[0]  # Warp allocates them: not inside the capture
         if trainer._exchanges_colours:  # the step's views' cameras, for their SH adjoints
-            self._batch_slots = [wp.empty(1, dtype=Camera, device=cameras.device) for _ in range(trainer.ranks.world)]
+            self._batch_slots = [wp.empty(1, dtype=Camera, device=cameras.device) for _ in range(self.batch)]
         if not self.cuda:
             self.key = key
             return
@@ -282,7 +296,10 @@ class GraphSteps:
         return self._tables[scale]
 
     def _body(self) -> None:
-        """The step's device work, from ``where`` and the rates table; reads nothing back."""
+        """The step's device work, from ``where`` and the rates table; reads nothing back. As
+        :meth:`cdcgs.train.trainer.Trainer.train_step`: each of the process's views rendered and
+        back-propagated in turn, the strategy's statistics after the last, the gradients averaged
+        over the batch (on several processes in the all-reduce), the guard's records, Adam."""
         trainer = self.trainer
         config = trainer.config
         cameras, current, prepared, photos = self._tables_at(self._scale)
@@ -290,35 +307,48 @@ class GraphSteps:
         lookahead = trainer.lookahead
         if distributed:
             trainer.statistics.begin(trainer.strategy_state, halts=True)
-        with warp_scope(self.device):
-            launch(select_camera_at_kernel, 1, inputs=[cameras, wp_arg(self.where, wp.int32), 1], outputs=[current])
-        image, _, info = rasterize(
-            **trainer.model.render_args(),
-            camera=prepared,
-            background=self._background,
-            antialiased=config.antialiased,
-            capacity=self.capacity,
-        )
-        lookahead.note(info, 0, 0, trainer.model.num, self._scale, where=self.where)  # take() records the view
-        photo = photos.index_select(0, self.where[1:2]).squeeze(0)
-        loss, image_psnr = trainer._loss(image, photo)
-        # the signature's: every step of the graph shares what the hooks read of it
-        iteration = trainer.step + 1 + trainer.ranks.rank
-        ctx = trainer._context(iteration, info, None)
-        trainer.strategy.before_backward(ctx, trainer.strategy_state)
-        if trainer.strategy.regularizer(ctx) is not None:
-            raise RuntimeError(
-                f"the {config.strategy} strategy adds a regulariser, which --cuda-graph does not capture"
+        first = trainer.step + 1
+        seen = []  # (loss, PSNR, step context) of each view, as the trainer's step keeps them
+        visible = None
+        for index, position in enumerate(my_positions(self.batch, trainer.ranks.rank, trainer.ranks.world)):
+            pair = self.where[2 * index : 2 * index + 2]  # (iteration, view) of this render
+            with warp_scope(self.device):
+                launch(
+                    select_camera_at_kernel,
+                    1,
+                    inputs=[cameras, wp_arg(self.where, wp.int32), 2 * index + 1],
+                    outputs=[current],
+                )
+            image, _, info = rasterize(
+                **trainer.model.render_args(),
+                camera=prepared,
+                background=self._background,
+                antialiased=config.antialiased,
+                capacity=self.capacity,
             )
-        trainer._backward(loss, info)
-        trainer.strategy.observe(ctx, trainer.strategy_state)
-        visible = info.visible if config.optimizer == "selective" else None
-        if distributed:  # the step's all-reduce, as Trainer.train_step's, with the flags from the host's copy
-            flags = torch.cat([self.where[2:WHERE_VIEWS].float(), lookahead.halt.float()])
+            lookahead.note(info, 0, 0, trainer.model.num, self._scale, where=pair)  # take() records the view
+            photo = photos.index_select(0, pair[1:]).squeeze(0)
+            loss, image_psnr = trainer._loss(image, photo)
+            # the signature's: every step of the graph shares what the hooks read of it
+            ctx = trainer._context(first + position, info, None)
+            trainer.strategy.before_backward(ctx, trainer.strategy_state)
+            if trainer.strategy.regularizer(ctx) is not None:
+                raise RuntimeError(
+                    f"the {config.strategy} strategy adds a regulariser, which --cuda-graph does not capture"
+                )
+            trainer._backward(loss, info)
+            seen.append((loss, image_psnr, ctx))
+            if config.optimizer == "selective":
+                visible = info.visible if visible is None else visible | info.visible
+        for _, _, ctx in seen:
+            trainer.strategy.observe(ctx, trainer.strategy_state)
+        if distributed or self.batch > 1:  # the step's all-reduce and average, as Trainer.train_step's
+            flags = torch.cat([self.where[self._flag_entry : self._views_entry].float(), lookahead.halt.float()])
             cameras = self._batch_cameras(cameras, prepared) if trainer._exchanges_colours else None
-            trainer._reduce(trainer.ranks.world, visible, timed=False, flags=flags, cameras=cameras)
+            trainer._reduce(self.batch, visible, timed=False, flags=flags if distributed else None, cameras=cameras)
             visible = trainer._visible
-        trainer.guard.record(loss, image_psnr, lookahead.halt)
+        for loss, image_psnr, _ in seen:
+            trainer.guard.record(loss, image_psnr, lookahead.halt)
         threads = sum(adam_quads(p.numel()) for p in self._params)
         if not self.cuda:  # one operation at a time: this step's gradients
             self._grads = [p.grad for p in self._params]
@@ -336,7 +366,7 @@ class GraphSteps:
                 launch(
                     select_camera_at_kernel,
                     1,
-                    inputs=[cameras, wp_arg(self.where, wp.int32), WHERE_VIEWS + position],
+                    inputs=[cameras, wp_arg(self.where, wp.int32), self._views_entry + position],
                     outputs=[slot],
                 )
         return [dataclasses.replace(prepared, on_device=slot) for slot in self._batch_slots]

@@ -654,9 +654,9 @@ class Trainer:
         views = [self._next_view() for _ in range(count)]
         self.generator.manual_seed(step_seed(config.seed, first))
         backgrounds = [self._step_background() for _ in range(count)]
-        # A replayed step renders one view per process; a timed step (several processes) runs as
-        # before, its parts timed apart.
-        replayable = self.graphs is not None and count == self.ranks.world and not timed
+        # A replayed step renders a whole batch (the last, shorter one runs as before); a timed
+        # step (several processes) runs as before, its parts timed apart.
+        replayable = self.graphs is not None and count == config.batch_size and not timed
         if replayable and self.graphs.take(first, views, backgrounds):
             self.step = last
             self.step_events = []
