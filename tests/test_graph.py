@@ -1,4 +1,4 @@
-"""``--cuda-graph``: the step of one view replayed as one CUDA graph, with the view, the iteration
+"""``--cuda-graph``: a step (one view, or a batch) replayed as one CUDA graph, with the view, the iteration
 and Adam's rates read from the device. On the CPU the same step runs one operation at a time and
 must give the training without it bit for bit; on CUDA the replayed training must stay as close to
 the counted one as two counted runs are."""
