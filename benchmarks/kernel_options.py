@@ -1,10 +1,12 @@
 """The renderer's kernel choices as options of a benchmark: ``--blend-backward`` and ``--blend-chunk``
-(``cdcgs.render.BLEND_BACKWARD_CUDA`` and ``BLEND_CHUNK``), for timing one against another."""
+(``cdcgs.render.BLEND_BACKWARD_CUDA`` and ``BLEND_CHUNK``), and ``--w-max-pass`` (how CDC-GS's Γ
+pass finds w_max, ``cdcgs.complexity.W_MAX_PASS``), for timing one against another."""
 
 from __future__ import annotations
 
 import contextlib
 
+import cdcgs.complexity
 import cdcgs.render
 from cdcgs.kernels import BLOCK_SIZE
 
@@ -23,6 +25,13 @@ def add_kernel_options(parser) -> None:
         help=f"list entries per block of the blend adjoint, a multiple of {BLOCK_SIZE} (0: whole tiles; "
         "cdcgs.render.BLEND_CHUNK; default: as it is)",
     )
+    parser.add_argument(
+        "--w-max-pass",
+        choices=cdcgs.complexity.W_MAX_PASSES,
+        default=None,
+        help="how the Γ pass finds w_max under the alpha rule: each pixel walks its tile list, or each list "
+        "entry scatters to its support box (cdcgs.complexity.W_MAX_PASS; default: as it is)",
+    )
 
 
 def check_kernel_options(parser, args) -> None:
@@ -33,7 +42,9 @@ def check_kernel_options(parser, args) -> None:
 @contextlib.contextmanager
 def kernel_options(args):
     """The renderer with ``args``' choices for the duration, as it was after."""
-    before = cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK
+    before = cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK, cdcgs.complexity.W_MAX_PASS
+    if getattr(args, "w_max_pass", None):
+        cdcgs.complexity.W_MAX_PASS = args.w_max_pass
     if args.blend_backward:
         cdcgs.render.BLEND_BACKWARD_CUDA = args.blend_backward
     if args.blend_chunk is not None:
@@ -41,4 +52,4 @@ def kernel_options(args):
     try:
         yield
     finally:
-        cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK = before
+        cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK, cdcgs.complexity.W_MAX_PASS = before

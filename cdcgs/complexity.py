@@ -22,7 +22,15 @@ import warp as wp
 
 from ._interop import launch, warp_scope, wp_arg
 from .kernels._constants import BLOCK_SIZE
-from .kernels.blend import MAX_EXACT, MAX_RACY_KEEP, MAX_RACY_RANK, W_MAX_ALPHA, W_MAX_WEIGHT, complexity_kernel
+from .kernels.blend import (
+    MAX_EXACT,
+    MAX_RACY_KEEP,
+    MAX_RACY_RANK,
+    W_MAX_ALPHA,
+    W_MAX_WEIGHT,
+    complexity_kernel,
+    w_max_alpha_kernel,
+)
 from .render import any_overflowed
 
 __all__ = [
@@ -41,6 +49,12 @@ __all__ = [
 METHODS = ("dwt", "dwt2", "sobel", "scharr", "laplacian")
 AGGREGATIONS = ("max", "mean")
 W_MAX_RULES = ("alpha", "weight")
+# How the complexity pass finds w_max under the "alpha" rule: "walk", the complexity kernel's first
+# pass (each pixel walks its tile's whole list), or "scatter", w_max_alpha_kernel before it (each
+# list entry evaluated only at the pixels of its support box). The same values; which is faster
+# on a GPU is not measured yet, so the walk stays.
+W_MAX_PASSES = ("walk", "scatter")
+W_MAX_PASS = "walk"
 LUMA = (0.299, 0.587, 0.114)
 
 
@@ -94,6 +108,7 @@ def gaussian_complexity(
     racy_seed: int | None = None,
     sums: bool = True,
     max_into: torch.Tensor | None = None,
+    w_max_pass: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """(max [N], sum [N], count [N] int32) over one render's pixels of HF * w / w_max per Gaussian.
 
@@ -106,7 +121,8 @@ def gaussian_complexity(
     and count are None), for the max aggregations, which do not need the kernel's sums.
     ``max_into``: a float32 [N] tensor of non-negative values (a running max over earlier views)
     that the max is taken into, in place, and returned as the max (no zeroed array, no second
-    pass to combine them).
+    pass to combine them). ``w_max_pass`` (:data:`W_MAX_PASSES`, None: :data:`W_MAX_PASS`): how
+    the "alpha" rule's w_max is found; the same values either way.
     """
     if hf_map.shape != (info.height, info.width) or hf_map.dtype != torch.uint8:
         raise ValueError(
@@ -114,6 +130,10 @@ def gaussian_complexity(
         )
     if w_max not in W_MAX_RULES:
         raise ValueError(f"w_max must be one of {', '.join(W_MAX_RULES)}, got {w_max!r}")
+    w_max_pass = W_MAX_PASS if w_max_pass is None else w_max_pass
+    if w_max_pass not in W_MAX_PASSES:
+        raise ValueError(f"w_max_pass must be one of {', '.join(W_MAX_PASSES)}, got {w_max_pass!r}")
+    scatter = w_max == "alpha" and w_max_pass == "scatter"
     n = info.means2d.shape[0]
     device = info.means2d.device
     opacities = info.opacities if opacities is None else opacities
@@ -138,17 +158,29 @@ def gaussian_complexity(
         info.conics.detach().contiguous(),
         opacities.detach().contiguous(),
         hf_map.to(device).contiguous(),
+        # every pixel's w_max, found before the complexity kernel (scatter), or nothing
+        torch.full((info.height * info.width if scatter else 0,), 1.0e-4, device=device),
     ]
     with warp_scope(device):
+        args = [
+            wp_arg(t, dtype)
+            for t, dtype in zip(tensors, (wp.int32, wp.int32, wp.vec2, wp.vec3, wp.float32, wp.uint8, wp.float32))
+        ]
+        if scatter:
+            launch(
+                w_max_alpha_kernel,
+                tiles_x * tiles_y * BLOCK_SIZE,
+                inputs=[*args[:5], info.width, info.height, tiles_x],
+                outputs=[args[6]],
+                block_dim=BLOCK_SIZE,
+            )
         inputs = [
-            *(
-                wp_arg(t, dtype)
-                for t, dtype in zip(tensors, (wp.int32, wp.int32, wp.vec2, wp.vec3, wp.float32, wp.uint8))
-            ),
+            *args[:6],
             info.width,
             info.height,
             tiles_x,
             W_MAX_ALPHA if w_max == "alpha" else W_MAX_WEIGHT,
+            args[6],
         ]
         outputs = [wp_arg(max_out, wp.float32), wp_arg(sum_out, wp.float32), wp_arg(count_out, wp.int32)]
         seed = 0 if racy_seed is None else int(racy_seed) % (2**23)

@@ -128,7 +128,7 @@ def test_suite_runs_and_writes_one_json(tmp_path, capsys):
     assert "## cdcgs benchmark suite on cpu" in printed and "| training run |" in printed
 
 
-def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
+def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys, monkeypatch):
     import profile_step
 
     scene = make_procedural_scene(tmp_path / "scene", views=8, width=48, height=36, points=300)
@@ -154,6 +154,19 @@ def test_step_profile_runs_on_a_scene_and_counts_every_part(tmp_path, capsys):
     assert profile_step.main([*argv, "--blend-chunk", "512"]) == 0 and default == cdcgs.render.BLEND_CHUNK
     with pytest.raises(SystemExit):
         profile_step.main([*argv, "--blend-chunk", "100"])
+    # The Γ pass with w_max scattered: in force during the run, as it was after.
+    import cdcgs.complexity as complexity
+
+    seen, real = [], complexity.gaussian_complexity
+
+    def spy(*args, **kwargs):
+        seen.append(complexity.W_MAX_PASS)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(complexity, "gaussian_complexity", spy)
+    assert profile_step.main([*argv, "--complexity-views", "2", "--w-max-pass", "scatter"]) == 0
+    assert seen and set(seen) == {"scatter"}
+    assert complexity.W_MAX_PASS == "walk", "restored"
     # 3DGS-MCMC's step (its noise and regularisers), at the profiled count as its budget.
     mcmc = tmp_path / "mcmc.json"
     assert (

@@ -136,6 +136,58 @@ def test_gaussian_complexity_matches_dense_reference(device, seed, n, width, hei
         torch.testing.assert_close(got, expected, atol=0, rtol=rtol)
 
 
+@pytest.mark.parametrize(
+    "seed, n, width, height",
+    # the second: tile lists of several batches; the third: a few Gaussians, where the edges of
+    # their footprints are many pixels' w_max
+    [(21, 300, 61, 37), (23, 1400, 40, 27), (24, 6, 61, 37)],
+)
+def test_the_scattered_w_max_is_the_walks(device, seed, n, width, height):
+    """w_max under the "alpha" rule found per list entry at its support box's pixels
+    (``w_max_pass="scatter"``) is the largest alpha over each pixel's tile list (float64
+    reference), and the Γ it gives is the per-pixel walk's: bit for bit on the CPU; on CUDA up to
+    the sums' atomic order and the two kernels' own rounding of alpha."""
+    import warp as wp
+
+    from cdcgs.kernels.blend import w_max_alpha_kernel
+
+    scene = make_scene(n, width, height, sh_degree=0, seed=seed)
+    if n > 1000:
+        scene.opacities = scene.opacities * 0.04
+    _, _, info = cdcgs.rasterize(
+        *[t.to(device) for t in scene.tensors()], viewmat=scene.viewmat, K=scene.K, width=width, height=height
+    )
+    hf_map = (torch.rand(height, width, generator=torch.Generator().manual_seed(seed)) * 255).to(torch.uint8)
+    walk = gaussian_complexity(info, hf_map.to(device), w_max_pass="walk")
+    scatter = gaussian_complexity(info, hf_map.to(device), w_max_pass="scatter")
+    tolerances = (0, 0, 0) if device == "cpu" else (1e-6, 1e-5, 0)
+    assert (walk[2] > 0).sum() >= min(20, n - 2)
+    for got, expected, rtol in zip(scatter, walk, tolerances):
+        torch.testing.assert_close(got, expected, atol=0, rtol=rtol)
+    # the map itself, against the float64 reference
+    w_max = torch.full((height * width,), 1e-4, device=device)
+    tensors = [info.tile_ranges, info.sorted_gauss_ids, info.means2d.detach(), info.conics.detach(), info.opacities]
+    dtypes = (wp.int32, wp.int32, wp.vec2, wp.vec3, wp.float32)
+    wp.launch(
+        w_max_alpha_kernel,
+        info.tiles_x * info.tiles_y * 256,
+        inputs=[
+            *(wp.from_torch(t.contiguous(), dtype=d) for t, d in zip(tensors, dtypes)),
+            width,
+            height,
+            info.tiles_x,
+        ],
+        outputs=[wp.from_torch(w_max)],
+        device=wp.device_from_torch(w_max.device),
+        block_dim=256,
+    )
+    reference_w_max = tile_list_alpha_max(scene, info, width, height)
+    assert (reference_w_max > 1e-4).sum() > 100
+    torch.testing.assert_close(w_max.cpu().double(), reference_w_max, atol=1e-6, rtol=1e-4)
+    with pytest.raises(ValueError, match="w_max_pass"):
+        gaussian_complexity(info, hf_map.to(device), w_max_pass="sideways")
+
+
 def test_bin_view_refuses_what_rasterize_refuses():
     scene = make_scene(40, 30, 20, sh_degree=0, seed=3)
     camera = prepare_camera(scene.viewmat, scene.K, 30, 20)

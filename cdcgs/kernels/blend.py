@@ -38,6 +38,7 @@ from ._lanes import (
     tile_batch,
     tile_ids,
 )
+from .binning import footprint_bound
 from .projection import ALPHA_THRESHOLD
 
 __all__ = [
@@ -623,6 +624,70 @@ def shape_of(
     return shape_field(field, g, means2d, conics, opacities)
 
 
+@wp.func
+def support_box(mean: wp.vec2, conic: wp.vec3, opacity: float, width: int, height: int):
+    """Pixels [x0, x1] x [y0, y1] (clamped to the image) holding every pixel where the Gaussian's
+    alpha reaches 1/255: the box of its footprint ellipse (``footprint_bound``, whose margin covers
+    rounding) a pixel wider on each side; the whole image where the conic is degenerate."""
+    det = conic[0] * conic[2] - conic[1] * conic[1]
+    if not (det > 0.0):
+        return wp.vec4i(0, width - 1, 0, height - 1)
+    bound = footprint_bound(opacity)
+    reach_x = wp.sqrt(bound * conic[2] / det) + 1.0
+    reach_y = wp.sqrt(bound * conic[0] / det) + 1.0
+    # pixel x has its centre at x + 0.5
+    x0 = wp.max(int(wp.floor(mean[0] - reach_x - 0.5)), 0)
+    x1 = wp.min(int(wp.ceil(mean[0] + reach_x - 0.5)), width - 1)
+    y0 = wp.max(int(wp.floor(mean[1] - reach_y - 0.5)), 0)
+    y1 = wp.min(int(wp.ceil(mean[1] + reach_y - 0.5)), height - 1)
+    return wp.vec4i(x0, x1, y0, y1)
+
+
+@wp.kernel(enable_backward=False)
+def w_max_alpha_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_gauss_ids: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    width: int,
+    height: int,
+    tiles_x: int,
+    w_max_out: wp.array(dtype=float),
+):
+    """The complexity pass's w_max under W_MAX_ALPHA, scattered: ``w_max_out[y * width + x]`` (filled
+    with the floor 1e-4 by the caller) becomes the largest alpha at pixel (x, y) over its tile's
+    list, as :func:`complexity_kernel`'s first pass finds it, but walked per list entry instead of
+    per pixel. Thread ``local`` of tile ``t``'s block takes the entries ``local``, ``local`` +
+    BLOCK_SIZE, ... of the tile's list and evaluates each Gaussian only at the tile's pixels
+    inside its support box (:func:`support_box`), where the per-pixel walk evaluates it at all 256:
+    a Gaussian a few pixels wide costs a few dozen evaluations instead. The largest alpha does not
+    depend on the order, so the result is the walk's, bit for bit where both evaluate alpha alike."""
+    tid = wp.tid()
+    tile = tid // BLOCK_SIZE
+    local = tid - tile * BLOCK_SIZE
+    tile_y = tile // tiles_x
+    tile_x = tile - tile_y * tiles_x
+    tx0 = tile_x * TILE_SIZE
+    ty0 = tile_y * TILE_SIZE
+    k = tile_ranges[tile, 0] + local
+    end = tile_ranges[tile, 1]
+    while k < end:
+        g = sorted_gauss_ids[k]
+        mean = means2d[g]
+        conic = conics[g]
+        opacity = opacities[g]
+        box = support_box(mean, conic, opacity, width, height)
+        for y in range(wp.max(box[2], ty0), wp.min(box[3], ty0 + TILE_SIZE - 1) + 1):
+            for x in range(wp.max(box[0], tx0), wp.min(box[1], tx0 + TILE_SIZE - 1) + 1):
+                index = y * width + x
+                if opacity > w_max_out[index]:  # else its alpha (at most its opacity) cannot raise it
+                    alpha = splat_alpha(mean, conic, opacity, float(x) + 0.5, float(y) + 0.5)
+                    if alpha > 0.0:
+                        atomic_max_nonnegative(w_max_out, index, alpha)
+        k += BLOCK_SIZE
+
+
 @wp.kernel(enable_backward=False)
 def complexity_kernel(
     tile_ranges: wp.array2d(dtype=wp.int32),
@@ -635,6 +700,7 @@ def complexity_kernel(
     height: int,
     tiles_x: int,
     w_max_rule: int,
+    w_max_map: wp.array(dtype=float),
     max_rule: int,
     seed: int,
     sums: int,
@@ -661,7 +727,9 @@ def complexity_kernel(
     tile lists, the largest ``racy_key`` (with ``seed``) of the pixels that composite it into
     ``keys`` (as long as ``sorted_gauss_ids``, filled with -1) and nothing else; MAX_RACY_KEEP
     then takes into ``max_out`` only those pixels' values (sums and counts stay exact).
-    ``complexity_map`` holds HF in [0, 1] as uint8 (x 255).
+    ``complexity_map`` holds HF in [0, 1] as uint8 (x 255). ``w_max_map``: empty, or every
+    pixel's w_max (``y * width + x``) found before (:func:`w_max_alpha_kernel`), which replaces the
+    first pass.
     """
     tid = wp.tid()
     pix = tile_pixel(tid, tiles_x)
@@ -679,11 +747,15 @@ def complexity_kernel(
         hf = float(complexity_map[y, x]) / 255.0
         outside = 0
 
-    # First pass: w_max.
+    # First pass: w_max, unless given.
     w_max = float(1.0e-4)
     transmittance = float(1.0)  # stays 1 under W_MAX_ALPHA
     stopped = outside  # under W_MAX_WEIGHT: the pixel's compositing has ended
     batch = start
+    if w_max_map.shape[0] > 0:  # the same for every thread: no block leaves the walk's collectives half-way
+        batch = end
+        if outside == 0:
+            w_max = w_max_map[y * width + x]
     while batch < end:
         count = wp.min(BLOCK_SIZE, end - batch)
         done = int(0)
