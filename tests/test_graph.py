@@ -36,8 +36,9 @@ CPU_ONLY = pytest.mark.skipif(
         ("cdc", {}),
         ("3dgs", {"batch_size": 2}),
         ("absgs", {"optimizer": "selective", "batch_size": 3}),
+        ("cdc", {"batch_size": 2}),
     ],
-    ids=["3dgs", "absgs-selective", "fast", "cdc", "3dgs-batch-2", "absgs-selective-batch-3"],
+    ids=["3dgs", "absgs-selective", "fast", "cdc", "3dgs-batch-2", "absgs-selective-batch-3", "cdc-batch-2"],
 )
 def test_a_graph_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path, strategy, overrides):
     """Replayed steps, of one view or of a batch (its views rendered in turn in one graph, the
