@@ -1010,6 +1010,7 @@ class PendingBins:
         self._camera, self._projection, self._start, self._names = camera, projection, start, names
         self._info: RasterizeInfo | None = None
         values = torch.cat([nonfinite, _torch(start.offsets)[-1:]])
+        self.count_on_device = values[-1:]  # the intersection count, int32 [1], for a caller that reads many at once
         self._event = self._stream = None
         if values.device.type == "cuda":
             self._stream = torch.cuda.current_stream(values.device)  # the first half's, and Warp's

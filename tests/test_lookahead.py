@@ -38,9 +38,10 @@ def test_a_sync_free_training_is_the_one_that_reads_every_count(tiny_scene, tmp_
     assert_same_model(counted, free)
     summary = result["sync_free"]
     views = len(free.scene.train)
-    # Each view reads its count once (its first render); every later render used slots.
-    assert summary["renders_counted"] == views
-    assert summary["renders_within_capacity"] == ITERS - views
+    # Every view's count comes from one binning before the training: no render read its count.
+    assert summary["views_primed"] == views
+    assert summary["renders_counted"] == 0
+    assert summary["renders_within_capacity"] == ITERS
     assert summary["rewinds"] == 0
     assert json.load(open(tmp_path / "free" / "metrics.json"))["sync_free"] == summary
 

@@ -18,8 +18,10 @@ Adam's step counts) and takes it again, now with the count that the device recor
 of an incomplete render is ever applied, and without an overflow the run is the one that reads
 every count (``tests/test_lookahead.py``). A step's guard records and densification statistics
 wait for its last render, so that a halt on a later view of a batch stops the earlier views' too.
-A view rendered for the first time, or whose slots would exceed ``MAX_CAPACITY``, reads its count
-as before. Callbacks (the viewer) see each iteration as it is taken, those taken again included.
+Before the first step every view's count for the Gaussians the training starts from is taken from
+one binning of each view and one wait for all (:meth:`Lookahead.prime`), so the first renders take
+slots too. A view whose count at the render's scale is unknown (a new resolution of the schedule),
+or whose slots would exceed ``MAX_CAPACITY``, reads its count as before. Callbacks (the viewer) see each iteration as it is taken, those taken again included.
 """
 
 from __future__ import annotations
@@ -92,6 +94,7 @@ class Lookahead:
         self._agreed: dict[int, tuple[int, int, int, int]] = {}
         self._noted: dict[int, tuple[int, int, int]] = {}  # views rendered with slots since the last read
         self.renders = {"counted": 0, "within": 0}
+        self.primed = 0  # views whose counts a binning before the training gave (Trainer._prime_counts)
         self.rewinds = 0
         self.redone = 0  # iterations taken again
         # the Γ passes' views (CDC-GS): binned into slots, reading their count, read again after an overflow
@@ -107,6 +110,13 @@ class Lookahead:
         count, then, _, _ = known
         slots = math.ceil(count * max(1.0, gaussians / max(then, 1)) * MARGIN) + FLOOR
         return slots if slots <= MAX_CAPACITY else None
+
+    def prime(self, counts: list[int], gaussians: int, scale: int = 1, iteration: int = 0) -> None:
+        """Every view's count (``counts[view]``) of a binning of ``gaussians`` Gaussians at 1/``scale``
+        before ``iteration``, no render's: its first renders take slots instead of reading theirs."""
+        for view, count in enumerate(counts):
+            self._known[view] = (count, gaussians, scale, iteration)
+        self.primed += len(counts)
 
     def counted(self, view: int, count: int, gaussians: int, scale: int = 1, iteration: int = 0) -> None:
         """A render of ``view`` at ``iteration`` that read its ``count``."""
@@ -181,6 +191,7 @@ class Lookahead:
         """metrics.json's account: renders that read their count and that did not, halts, the
         iterations taken again and, where Γ passes ran, how their views were binned."""
         summary = {
+            "views_primed": self.primed,
             "renders_counted": self.renders["counted"],
             "renders_within_capacity": self.renders["within"],
             "rewinds": self.rewinds,

@@ -495,6 +495,28 @@ class Trainer:
 
     _SHAPE_PARAMS = ("log_scales", "opacity_logits")  # what the cached scales and opacities come from
 
+    def _prime_counts(self) -> None:
+        """With ``--sync-free`` (the replayed steps too): every training view's intersection count
+        for the Gaussians the training starts (or resumes) from, from one binning of each view and
+        one wait for all of them, so that no view's first render waits for its own count and the
+        first steps can be replayed. A count only sizes a render's slots: a render that overflows
+        them is taken again, as any (:mod:`cdcgs.train.lookahead`)."""
+        lookahead = self.lookahead
+        if lookahead is None or self.step >= self.config.iters:
+            return
+        scale = self._downscale(self.step + 1)
+        model = self.model
+        with torch.no_grad():
+            shape = {"scales": model.scales(), "opacities": model.opacities()}
+            means, quats = model.params["means"].detach(), model.params["quats"].detach()
+            counts = []
+            for view in range(len(self.scene.train)):
+                camera = self.cameras[view] if scale == 1 else self._scaled_view(view, scale)[0]
+                pending = start_bin_view(means, quats, **shape, camera=camera, antialiased=self.config.antialiased)
+                counts.append(pending.count_on_device)
+            values = torch.cat(counts).tolist() if counts else []
+        lookahead.prime(values, model.num, scale, self.step)
+
     def state_dict(self) -> dict:
         return {
             "format": CHECKPOINT_FORMAT,
@@ -1113,6 +1135,9 @@ class Trainer:
                 callback.on_start(self)
                 started.append(callback)
             with self.signals.deferred():
+                start = time.perf_counter()
+                self._prime_counts()
+                self.train_seconds += time.perf_counter() - start
                 while self.step < config.iters:
                     self._iteration(bar)
                     self._raise_pending(agreed=False)
