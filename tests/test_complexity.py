@@ -149,6 +149,7 @@ def test_the_scattered_w_max_is_the_walks(device, seed, n, width, height):
     the sums' atomic order and the two kernels' own rounding of alpha."""
     import warp as wp
 
+    from cdcgs.kernels import BLOCK_SIZE
     from cdcgs.kernels.blend import w_max_alpha_kernel
 
     scene = make_scene(n, width, height, sh_degree=0, seed=seed)
@@ -170,7 +171,7 @@ def test_the_scattered_w_max_is_the_walks(device, seed, n, width, height):
     dtypes = (wp.int32, wp.int32, wp.vec2, wp.vec3, wp.float32)
     wp.launch(
         w_max_alpha_kernel,
-        info.tiles_x * info.tiles_y * 256,
+        info.tiles_x * info.tiles_y * BLOCK_SIZE,
         inputs=[
             *(wp.from_torch(t.contiguous(), dtype=d) for t, d in zip(tensors, dtypes)),
             width,
@@ -179,7 +180,7 @@ def test_the_scattered_w_max_is_the_walks(device, seed, n, width, height):
         ],
         outputs=[wp.from_torch(w_max)],
         device=wp.device_from_torch(w_max.device),
-        block_dim=256,
+        block_dim=BLOCK_SIZE,
     )
     reference_w_max = tile_list_alpha_max(scene, info, width, height)
     assert (reference_w_max > 1e-4).sum() > 100

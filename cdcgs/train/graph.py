@@ -62,13 +62,6 @@ RING = 256
 assert READ_EVERY < RING
 
 
-def where_layout(views_per_process: int) -> tuple[int, int]:
-    """Where ``where``'s two flags (a signal is pending, a render met NaN) begin, and where the
-    step's views in batch order begin, after one (iteration, view) pair per view of the process."""
-    flags = 2 * views_per_process
-    return flags, flags + 2
-
-
 def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
     """Why the steps of ``trainer`` cannot be replayed as CUDA graphs, and what would let them:
     (why, what to change), or None. With ``default`` (the option left at none) a training on the
@@ -135,8 +128,8 @@ class GraphSteps:
         # NaN), the step's views in batch order: the flags for the all-reduce, the views for
         # --dist-exchange colours
         self.batch = trainer.config.batch_size
-        self.mine = self.batch // trainer.ranks.world  # views a process renders a step
-        self._flag_entry, self._views_entry = where_layout(self.mine)
+        self._flag_entry = 2 * (self.batch // trainer.ranks.world)  # after a pair per view of the process
+        self._views_entry = self._flag_entry + 2
         entries = self._views_entry + self.batch
         self.where = torch.zeros(entries, dtype=torch.int32, device=self.device)
         self._where_ring = torch.zeros(RING, entries, dtype=torch.int32, pin_memory=pinned)

@@ -21,7 +21,8 @@ wait for its last render, so that a halt on a later view of a batch stops the ea
 Before the first step every view's count for the Gaussians the training starts from is taken from
 one binning of each view and one wait for all (:meth:`Lookahead.prime`), so the first renders take
 slots too. A view whose count at the render's scale is unknown (a new resolution of the schedule),
-or whose slots would exceed ``MAX_CAPACITY``, reads its count as before. Callbacks (the viewer) see each iteration as it is taken, those taken again included.
+or whose slots would exceed ``MAX_CAPACITY``, reads its count as before. Callbacks (the viewer)
+see each iteration as it is taken, those taken again included.
 """
 
 from __future__ import annotations
