@@ -51,8 +51,8 @@ AGGREGATIONS = ("max", "mean")
 W_MAX_RULES = ("alpha", "weight")
 # How the complexity pass finds w_max under the "alpha" rule: "walk", the complexity kernel's first
 # pass (each pixel walks its tile's whole list), or "scatter", w_max_alpha_kernel before it (each
-# list entry evaluated only at the pixels of its support box). The same values; which is faster
-# on a GPU is not measured yet, so the walk stays.
+# list entry evaluated only at the pixels of its support box). The same values; on an H200 the
+# scatter took 2.47 ms a view at 1M trained Gaussians against the walk's 1.98 (docs/benchmarks.md).
 W_MAX_PASSES = ("walk", "scatter")
 W_MAX_PASS = "walk"
 LUMA = (0.299, 0.587, 0.114)
