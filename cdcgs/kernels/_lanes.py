@@ -17,6 +17,7 @@ from ._constants import BLOCK_SIZE
 __all__ = [
     "BATCH_FIELDS",
     "BATCH_LOAD",
+    "BATCH_MAX",
     "BATCH_STORE",
     "GRADIENTS_ADD",
     "GRADIENTS_READ",
@@ -24,6 +25,7 @@ __all__ = [
     "GROUP_SIZE",
     "WARP_SIZE",
     "atomic_max_nonnegative",
+    "batch_max",
     "block_count",
     "block_gradients",
     "block_max_int",
@@ -66,11 +68,31 @@ def _butterfly(ctype: str, combine: str) -> str:
 def lane_sum(value: float) -> float: ...
 
 
-@wp.func_native(_butterfly("float", "fmaxf({a}, {b})"))
-def lane_max(value: float) -> float: ...
+def _reduced(ctype: str, combine: str, to_int: str, from_int: str) -> str:
+    """Native body of a warp max: on sm_80 and later one ``__reduce_max_sync`` (a single warp
+    instruction, where the butterfly takes five shuffles and five combines) on ``value`` mapped to
+    an int by ``to_int`` and back by ``from_int``; before sm_80 the butterfly of ``combine``."""
+    butterfly = _butterfly(ctype, combine).replace("#if defined(__CUDA_ARCH__)", "#elif defined(__CUDA_ARCH__)")
+    return f"""
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 800
+    const int reduced = __reduce_max_sync({FULL_MASK}, {to_int.format(v="value")});
+    return {from_int.format(v="reduced")};{butterfly}"""
 
 
-@wp.func_native(_butterfly("int", "max({a}, {b})"))
+# A float's bits as a signed int that orders as the float does (not NaN): non-negative floats order
+# as their bits already; a negative float's lower 31 bits are flipped, so larger magnitudes become
+# smaller ints. The map is its own inverse. -0.0 maps below +0.0, which fmaxf may treat as equal.
+_ORDERED = "(__float_as_int({v}) ^ ((__float_as_int({v}) >> 31) & 0x7fffffff))"
+_FROM_ORDERED = "__int_as_float(({v}) ^ ((({v}) >> 31) & 0x7fffffff))"
+
+
+@wp.func_native(_reduced("float", "fmaxf({a}, {b})", _ORDERED, _FROM_ORDERED))
+def lane_max(value: float) -> float:
+    """The largest ``value`` over the warp's lanes (not NaN)."""
+    ...
+
+
+@wp.func_native(_reduced("int", "max({a}, {b})", "{v}", "{v}"))
 def lane_max_int(value: int) -> int: ...
 
 
@@ -261,6 +283,29 @@ def tile_ids(op: int, slot: int, value: int) -> int:
 def block_max_int(value: int) -> int:
     """The largest ``value`` of the block's threads (a barrier: all must call it); the value itself on the CPU."""
     ...
+
+
+@wp.func_native(
+    f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ int tops[{BLOCK_SIZE}];
+    if (op == {BATCH_STORE}) {{ tops[slot] = 0; return 0.0f; }}
+    if (op == {BATCH_LOAD}) return __int_as_float(tops[slot]);
+    atomicMax(&tops[slot], __float_as_int(value));
+    return value;
+#else
+    return value;
+#endif
+"""
+)
+def batch_max(op: int, slot: int, value: float) -> float:
+    """A per-slot max of non-negative floats in shared memory beside ``tile_batch`` (CUDA only):
+    BATCH_STORE sets ``slot`` to 0, BATCH_LOAD reads it, any other ``op`` raises it to ``value``
+    (a shared-memory atomic on the float's bits, which order as the floats do when non-negative)."""
+    ...
+
+
+BATCH_MAX = wp.constant(2)  # batch_max's op that raises a slot
 
 
 # ------------------------------------------------------------------------------------------------

@@ -18,11 +18,13 @@ from ._constants import BLOCK_SIZE, TILE_SIZE
 from ._lanes import (
     BATCH_FIELDS,
     BATCH_LOAD,
+    BATCH_MAX,
     BATCH_STORE,
     GRADIENTS_ADD,
     GRADIENTS_READ,
     GRADIENTS_ZERO,
     atomic_max_nonnegative,
+    batch_max,
     block_count,
     block_gradients,
     block_max_int,
@@ -721,7 +723,9 @@ def complexity_kernel(
     the whole tile list, both floored at 1e-4); a pixel leaves it once no later Gaussian can raise
     w_max (alpha <= MAX_ALPHA * T), and under W_MAX_ALPHA skips a Gaussian whose opacity does
     not exceed w_max (alpha <= opacity): both exact. The second combines the warp's contributions
-    per Gaussian in registers and adds them with an exact atomic max, and with ``sums`` non-zero
+    per Gaussian in registers (one ``__reduce_max_sync`` on sm_80 and later), then on CUDA the
+    block's warps in shared memory (``batch_max``), and adds them with an exact atomic max once per
+    tile and Gaussian, and with ``sums`` non-zero
     atomic sums and counts too (the mean aggregations read them; with ``sums`` 0 ``sum_out``
     and ``count_out`` are left untouched). ``max_rule`` MAX_RACY_RANK writes, per entry of the
     tile lists, the largest ``racy_key`` (with ``seed``) of the pixels that composite it into
@@ -796,7 +800,8 @@ def complexity_kernel(
         batch += BLOCK_SIZE
 
     # Second pass: the warp's lanes walk the list together so that each Gaussian's max, sum and
-    # count are combined in registers and reach global memory once per warp. A lane whose pixel
+    # count are combined in registers; the max then meets the block's other warps in shared memory
+    # and reaches global memory once per tile (sums and counts once per warp). A lane whose pixel
     # has stopped takes part with nothing; the warp leaves a batch once all its lanes have stopped.
     transmittance = float(1.0)
     stopped = outside
@@ -808,6 +813,7 @@ def complexity_kernel(
                 break
             if local < count:
                 stage_shape(local, sorted_gauss_ids[batch + local], means2d, conics, opacities)
+            batch_max(BATCH_STORE, local, 0.0)
             block_sync()
         for j in range(count):  # the same for the warp's lanes
             if lane_any(1 - stopped) == 0:
@@ -852,10 +858,18 @@ def complexity_kernel(
                         if lane_leads() != 0:
                             wp.atomic_add(sum_out, g, total)
                             wp.atomic_add(count_out, g, int(hits))
-                    if lane_leads() != 0:
-                        atomic_max_nonnegative(max_out, g, top)  # top >= 0, max_out zeroed by the caller
+                    if lane_leads() != 0 and top > 0.0:
+                        if staged != 0:
+                            batch_max(BATCH_MAX, j, top)  # the block's warps combined, added below
+                        else:
+                            atomic_max_nonnegative(max_out, g, top)  # top >= 0, max_out zeroed by the caller
         if staged != 0:
             block_sync()
+            # one atomic per entry of the batch that a pixel of the tile composited, not one per warp
+            if local < count and max_rule != MAX_RACY_RANK:
+                top = batch_max(BATCH_LOAD, local, 0.0)
+                if top > 0.0:
+                    atomic_max_nonnegative(max_out, tile_ids(BATCH_LOAD, local, 0), top)
         elif stopped != 0:
             break
         batch += BLOCK_SIZE
