@@ -25,7 +25,9 @@ test PSNR, SSIM, LPIPS-VGG and -Alex, Gaussians, the largest peak GPU memory of 
 all-reduce's share of a step and the wait for the slowest rank before it), with the machine, date
 and commit, is printed, written to ``--out``/scaling.md and, with ``--docs``, put into that file
 between ``<!-- scaling-table:begin -->`` and ``<!-- scaling-table:end -->``. Runs whose folder already holds a finished run are read, not
-trained again (``--retrain`` trains them anew). ``--device cpu`` runs the same on the CPU (gloo).
+trained again (``--retrain`` trains them anew), when they were trained with the same
+``--train-option``s (each run records them in ``train_options.json``; a run trained with others is
+refused, naming both). ``--device cpu`` runs the same on the CPU (gloo).
 """
 
 from __future__ import annotations
@@ -59,6 +61,9 @@ from training_table import (
 
 BEGIN, END = "<!-- scaling-table:begin -->", "<!-- scaling-table:end -->"
 DEFAULT_CONFIGS = ["1x1", "1x2", "2x2", "4x4"]
+# In a run's folder: the --train-options it was trained with, so that a table that reads the run
+# again (instead of training it) names what it really ran with.
+OPTIONS = "train_options.json"
 
 
 def parse_config(text: str) -> tuple[int, int]:
@@ -105,7 +110,7 @@ def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool 
     metrics_path = os.path.join(folder, "metrics.json")
     if os.path.isfile(metrics_path) and not args.retrain:
         print(f"{name}: read the finished run in {folder}", flush=True)
-        return read_run(folder)
+        return read_finished(folder, args)
     if args.device != "cpu" and processes > available_gpus():
         why = f"needs {processes} GPUs, this machine has {available_gpus()}"
         print(f"{name}: skipped ({why})", flush=True)
@@ -140,7 +145,32 @@ def train(strategy: str, config: str, args, gpu: int | None = None, alone: bool 
     shutil.rmtree(scratch, ignore_errors=True)
     with open(os.path.join(folder, NEIGHBOURS), "w") as f:
         json.dump(seen, f)
-    return read_run(folder)
+    with open(os.path.join(folder, OPTIONS), "w") as f:
+        json.dump({"train_options": list(args.train_options)}, f)
+    return read_finished(folder, args)
+
+
+def read_finished(folder: str, args) -> dict:
+    """A finished run (``read_run``) that was trained with this invocation's ``--train-option``s,
+    since the table's heading names them; SystemExit naming both when it was not. A run trained
+    before runs recorded their options is read with ``options_unknown`` set (the table says so)."""
+    metrics = read_run(folder)
+    path = os.path.join(folder, OPTIONS)
+    if not os.path.isfile(path):
+        metrics["options_unknown"] = True
+        return metrics
+    with open(path) as f:
+        recorded = json.load(f).get("train_options")
+    if recorded != list(args.train_options):
+
+        def shown(options):
+            return " ".join(f"--train-option={shlex.quote(o)}" for o in options) or "no --train-option"
+
+        raise SystemExit(
+            f"scaling_table: {folder} was trained with {shown(recorded)}, and this table is for "
+            f"{shown(args.train_options)}: pass the same, --retrain, or another --out"
+        )
+    return metrics
 
 
 def run_gpus(environment: dict, processes: int) -> list[str]:
@@ -245,6 +275,13 @@ def table(rows: dict[Row, dict], machine: str, args, side_by_side: bool = False)
         )
     for limit in notes:
         lines += ["", f"‡ stopped after {limit:.0f} s: the run had written its results, but its processes did not end."]
+    unknown = [f"{strategy} {config}" for (strategy, config, _), m in rows.items() if m.get("options_unknown")]
+    if unknown:
+        lines += [
+            "",
+            f"Read from folders trained before runs recorded their options, so not checked against the heading's: "
+            f"{', '.join(unknown)}.",
+        ]
     return "\n".join(lines) + "\n"
 
 

@@ -407,6 +407,15 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
     for bad in (["--configs", "2x1"], ["--configs", "two"], ["--strategies", "nonsense"]):
         with pytest.raises(SystemExit):
             scaling_table.main([*argv, *bad])
+    # a finished run is read again only for a table of the options it was trained with
+    other = [a for a in argv if a != "--train-option=--dist-exchange=colours"]
+    with pytest.raises(SystemExit, match=r"3dgs-1x1 was trained with --train-option=--dist-exchange=colours"):
+        scaling_table.main(other)
+    assert text == docs.read_text(), "nothing written by the refused table"
+    # one trained before runs recorded their options: read, and the table says so
+    (out / "3dgs-1x1" / scaling_table.OPTIONS).unlink()
+    assert scaling_table.main(argv) == 0
+    assert "not checked against the heading's: 3dgs 1x1." in docs.read_text()
 
 
 def test_a_run_past_its_limit_is_stopped_and_one_that_wrote_its_results_is_kept(tmp_path, monkeypatch, capsys):
