@@ -6,7 +6,8 @@ A run folder's history.json records the training time at each log point (``train
 step and the seconds so far, as metrics.json's ``train_seconds`` counts them). For each run this
 prints the seconds each span took, with the milliseconds per iteration over it and the Gaussians
 at its end, and the run's whole time with its refinements (``refine_seconds``), CDC-GS's Γ passes
-(``gamma_seconds``) and the CUDA-graph captures (``cuda_graph.capture_seconds``) from
+(``gamma_seconds``), the CUDA-graph captures (``cuda_graph.capture_seconds``) and the waits before
+them for the work queued (``cuda_graph.capture_wait_seconds``) from
 metrics.json. The spans end at each of ``--at`` that the run logged, and at its last step.
 """
 
@@ -64,6 +65,7 @@ def summary(metrics: dict) -> dict:
         "refine_seconds": metrics.get("refine_seconds"),
         "gamma_seconds": metrics.get("gamma_seconds"),
         "capture_seconds": graph.get("capture_seconds"),
+        "capture_wait_seconds": graph.get("capture_wait_seconds"),
     }
 
 
@@ -92,6 +94,7 @@ def print_table(runs: list[dict]) -> None:
         ("refine_seconds", "refinements"),
         ("gamma_seconds", "Γ passes"),
         ("capture_seconds", "captures"),
+        ("capture_wait_seconds", "waits before captures"),
     ):
         print(f"| {label} | " + " | ".join(_seconds(run["summary"][key]) for run in runs) + " |")
 

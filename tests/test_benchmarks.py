@@ -773,7 +773,7 @@ def test_time_split_adds_the_spans_by_hand(tmp_path, capsys):
         "train_seconds": 1.6,
         "refine_seconds": 0.3,
         "gamma_seconds": 0.0,
-        "cuda_graph": {"capture_seconds": 0.1},
+        "cuda_graph": {"capture_seconds": 0.1, "capture_wait_seconds": 0.25},
     }
     (run / "metrics.json").write_text(json.dumps(metrics))
     out = tmp_path / "split.json"
@@ -784,6 +784,7 @@ def test_time_split_adds_the_spans_by_hand(tmp_path, capsys):
     assert [s["ms_per_iteration"] for s in spans] == pytest.approx([7.0, 7.0, 2.0])
     printed = capsys.readouterr().out
     assert "| 100–200 | 0.7 s (7.00 ms, 0.00M) |" in printed and "| captures | 0.1 s |" in printed
+    assert "| waits before captures | 0.2 s |" in printed
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit):
         time_split.main([str(tmp_path / "empty")])

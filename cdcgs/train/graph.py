@@ -141,6 +141,10 @@ class GraphSteps:
         self.capacity = 0
         self.captures = 0
         self.capture_seconds = 0.0  # the host's time in the captures (recording and instantiating)
+        # the host's wait, before each capture, for the work queued before it (torch's capture
+        # synchronises the device first): on several processes it holds their collectives, so the
+        # slowest process's pace; not in capture_seconds
+        self.capture_wait_seconds = 0.0
         self.replays = 0
         self._table = self._rates = self._grads = None
         self._batch_slots: list = []  # one-camera arrays of the step's views (--dist-exchange colours)
@@ -244,7 +248,10 @@ class GraphSteps:
         if not self.cuda:
             self.key = key
             return
+        waited = time.perf_counter()
+        torch.cuda.synchronize(self.device)  # what torch.cuda.graph does first, timed on its own
         start = time.perf_counter()
+        self.capture_wait_seconds += start - waited
         graph = torch.cuda.CUDAGraph()
         # torch's context empties torch's cache first (each capture follows a refinement that
         # replaced the Gaussians): without that, a bonsai training reserved 65.7 GB against 4.7,
@@ -383,4 +390,9 @@ class GraphSteps:
         self.capacity = 0
 
     def summary(self) -> dict:
-        return {"captures": self.captures, "replayed_steps": self.replays, "capture_seconds": self.capture_seconds}
+        return {
+            "captures": self.captures,
+            "replayed_steps": self.replays,
+            "capture_seconds": self.capture_seconds,
+            "capture_wait_seconds": self.capture_wait_seconds,
+        }
