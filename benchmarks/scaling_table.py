@@ -159,8 +159,15 @@ def read_finished(folder: str, args) -> dict:
     if not os.path.isfile(path):
         metrics["options_unknown"] = True
         return metrics
-    with open(path) as f:
-        recorded = json.load(f).get("train_options")
+    try:
+        with open(path) as f:
+            recorded = json.load(f)["train_options"]
+        if not (isinstance(recorded, list) and all(isinstance(o, str) for o in recorded)):
+            raise TypeError("not a list of strings")
+    except (ValueError, KeyError, TypeError) as error:
+        raise SystemExit(
+            f"scaling_table: {path} is not a record of --train-options ({error}): pass --retrain, or another --out"
+        ) from None
     if recorded != list(args.train_options):
 
         def shown(options):

@@ -412,6 +412,9 @@ def test_scaling_table_runs_each_config_and_writes_the_table_into_the_docs(tmp_p
     with pytest.raises(SystemExit, match=r"3dgs-1x1 was trained with --train-option=--dist-exchange=colours"):
         scaling_table.main(other)
     assert text == docs.read_text(), "nothing written by the refused table"
+    (out / "3dgs-1x1" / scaling_table.OPTIONS).write_text("{not json")
+    with pytest.raises(SystemExit, match=r"train_options.json is not a record of --train-options"):
+        scaling_table.main(argv)
     # one trained before runs recorded their options: read, and the table says so
     (out / "3dgs-1x1" / scaling_table.OPTIONS).unlink()
     assert scaling_table.main(argv) == 0
