@@ -210,10 +210,15 @@ class TorchWarpBridge:
     def scope(self, device: torch.device):
         """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe).
 
-        A scope nested in one for the same device in the same thread costs nothing: the outer one's
-        device and stream stay (the stream is the one current when the outer scope was entered).
+        A scope nested in one for the same device and torch stream in the same thread costs
+        nothing: the outer one's device and stream stay. Nested under another torch stream (a
+        ``torch.cuda.stream`` entered inside the outer scope), it runs Warp on that stream until it
+        ends.
         """
-        key = (device.type, device.index)
+        # A scope under another torch stream than the outer one's is a scope of its own, so that a
+        # caller's ``torch.cuda.stream`` reaches the launches of cdcgs functions it calls.
+        stream = torch.cuda.current_stream(device).cuda_stream if device.type == "cuda" else None
+        key = (device.type, device.index, stream)
         active = self._active
         outer = getattr(active, "key", None), getattr(active, "device", None)
         if outer[0] == key:

@@ -565,3 +565,39 @@ def test_mcmc_noise_kernel_from_warp_arrays_alone(device):
     np.testing.assert_allclose(noise.numpy(), expected, rtol=2e-4, atol=1e-12)
     assert np.abs(noise.numpy()[-1]).max() < 1e-30 < np.abs(noise.numpy()[0]).max()  # the opaque one stays put
     np.testing.assert_allclose(moved.numpy(), means + expected, rtol=0, atol=1e-6)  # added in place
+
+
+def test_a_scope_under_another_torch_stream_launches_on_that_stream(device):
+    """``warp_scope`` nested in one for the same device: on the outer scope's stream while torch's
+    current stream is the same, on the new one inside ``torch.cuda.stream`` (a caller that runs
+    cdcgs functions on a stream of its own), and back on the outer one after; a launch there runs
+    on it (CUDA only: the CPU has no streams)."""
+    if device != "cuda":
+        pytest.skip("CUDA streams")
+    import warp as wp
+
+    from cdcgs._interop import launch, warp_scope, wp_arg
+    from cdcgs.kernels._checks import find_nonfinite_kernel
+
+    device = torch.device("cuda")
+    side = torch.cuda.Stream(device=device)
+    values = torch.zeros(1 << 20, device=device)
+    values[-1] = float("nan")
+    flags = torch.zeros(6, dtype=torch.int32, device=device)
+    side.wait_stream(torch.cuda.current_stream(device))  # the inputs above are written on the current stream
+    with warp_scope(device):
+        outer = wp.get_stream().cuda_stream
+        assert outer == torch.cuda.current_stream(device).cuda_stream
+        with warp_scope(device):
+            assert wp.get_stream().cuda_stream == outer
+        with torch.cuda.stream(side), warp_scope(device):
+            assert wp.get_stream().cuda_stream == side.cuda_stream
+            launch(
+                find_nonfinite_kernel,
+                64,
+                inputs=[wp_arg(values, wp.float32)] * 6 + [64],
+                outputs=[wp_arg(flags, wp.int32)],
+            )
+        assert wp.get_stream().cuda_stream == outer
+    side.synchronize()  # the launch was queued on the side stream: waiting for it alone suffices
+    assert flags.tolist() == [1] * 6
