@@ -222,6 +222,16 @@ def train(
         return result
 
     Trainer.train_step = step
+    splits = []  # (iteration, positions) of every split of a step's views (Trainer.positions)
+    real_positions = Trainer.positions
+
+    def positions(self, first, views):
+        mine = real_positions(self, first, views)
+        splits.append((first, list(mine)))
+        return mine
+
+    patched.append((Trainer, "positions", real_positions))
+    Trainer.positions = positions
     from cdcgs.train.distributed import Ranks
 
     released = []  # at the close of the process group: whether no replayed step's graph was left
@@ -280,6 +290,8 @@ def train(
         "flag_buffers": len(flag_buffers),
         "sync_free": result.get("sync_free"),
         "cuda_graph": result.get("cuda_graph"),
+        "dist_balance": result.get("dist_balance"),
+        "splits": splits,
         "test": result["test"],
         "events": list(trainer.history["strategy"]),
     }

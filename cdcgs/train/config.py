@@ -224,6 +224,11 @@ class TrainConfig:
         "what the processes of a torchrun launch exchange each step: gradients (every parameter's, in one all-reduce) or colours (the geometric parameters' gradients, and each view's colour gradients, from which every process rebuilds the spherical harmonics' gradients of the whole batch: 3.8x fewer bytes on 2 GPUs, 3.2x on 4, for one SH adjoint more per view of the step)",
         choices=("gradients", "colours"),
     )
+    dist_balance: str = option(
+        "none",
+        "which process renders which views of a step in a torchrun launch: none (positions rank, rank + processes, ...) or counts (the views split by their last intersection counts, the costliest first to the least loaded process, so that the processes reach the all-reduce together; where every view of the step has a count that all processes know, with --sync-free or the replayed steps, and at least two views per process; the same views and gradients, summed in another order; not with --dist-exchange colours)",
+        choices=("none", "counts"),
+    )
     dist_timeout: float = option(
         600.0,
         "seconds a process of a torchrun launch waits for the others in a collective before the run stops with an error",

@@ -182,8 +182,10 @@ class GraphSteps:
         ``backgrounds``, in batch order) as a replayed step and return True, or return False: the
         trainer takes it as before. On several processes every process decides alike, from what
         all of them know (the counts agreed at the last read), so that they replay together.
-        A process renders the batch's positions rank, rank + processes, ...; their backgrounds
-        are one colour (the graph holds it)."""
+        A process renders the batch's positions that :meth:`Trainer.positions` gives it (rank,
+        rank + processes, ..., or split by the views' counts): the graph reads each render's
+        iteration and view from ``where``, so any split replays; their backgrounds are one colour
+        (the graph holds it)."""
         trainer = self.trainer
         ranks = trainer.ranks
         scale = trainer._downscale(first)
@@ -199,7 +201,7 @@ class GraphSteps:
             return False  # a first render at this scale reads the count
         if key != self.key or max(needs) > self.capacity:
             self._capture(key, scale, backgrounds[ranks.rank])
-        positions = my_positions(self.batch, ranks.rank, ranks.world)
+        positions = trainer.positions(first, views)
         slot = first % RING
         self._where_slots[slot] = (
             *(value for p in positions for value in (first + p, views[p])),

@@ -24,7 +24,7 @@ from ..io.checkpoint import remove_temporary_files
 from ..render import bin_view, prepare_camera, rasterize, sh_adjoint, start_bin_view
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
-from .distributed import Ranks, StatisticsSync, _environment, my_positions, rank_device, step_seed
+from .distributed import Ranks, StatisticsSync, _environment, balanced_positions, my_positions, rank_device, step_seed
 from .evaluate import evaluate, lpips_metric
 from .graph import GraphSteps, graph_refusal
 from .guard import NumericGuard, TrainingDiverged
@@ -224,6 +224,7 @@ class Trainer:
         self.lookahead: Lookahead | None = None  # --sync-free
         self.graphs: GraphSteps | None = None  # --cuda-graph
         self.graph_off: str | None = None  # why the steps are not replayed as CUDA graphs
+        self.balanced_steps = 0  # steps whose views the processes split by their counts (--dist-balance counts)
         self._snapshots: dict[int, dict] = {}  # --sync-free: iteration -> what the host needs to take it again
 
     # ----------------------------------------------------------------------------- set-up
@@ -265,6 +266,11 @@ class Trainer:
             raise OptionError(
                 "--budget-schedule dash grows the Gaussian budget with the training resolution: it needs "
                 "--resolution-schedule dash"
+            )
+        if config.dist_balance == "counts" and config.dist_exchange == "colours":
+            raise OptionError(
+                "--dist-balance counts splits a step's views by their counts, and --dist-exchange colours rebuilds "
+                "the SH gradients from each process's views in the default split: choose one"
             )
         self._check_sync_free()
         d = config.data
@@ -688,7 +694,7 @@ class Trainer:
             self.statistics.begin(self.strategy_state, halts=self.lookahead is not None)
         visible = None
         seen = []  # (loss, PSNR, context) of each view, recorded once every view of the step is rendered
-        for position in my_positions(count, self.ranks.rank, self.ranks.world):
+        for position in self.positions(first, views):
             view = self._view_backward(first + position, views[position], backgrounds[position])
             if view is None:  # on several processes: a render met NaN; the others learn it below
                 break
@@ -932,6 +938,24 @@ class Trainer:
             return loss, mse_to_psnr(mse)
         target = photo.float() / 255.0
         return photometric_loss(image, target, config.ssim_weight), psnr(image.detach(), target)
+
+    def positions(self, first: int, views: list[int]) -> list[int]:
+        """The positions of the step's batch (``views``, beginning at iteration ``first``) that
+        this process renders: rank, rank + processes, ..., or with ``--dist-balance counts`` the
+        split of :func:`cdcgs.train.distributed.balanced_positions` by the views' counts that every
+        process knows alike (the agreed ones, so all split alike), where each view has one at this
+        resolution and each process gets two views or more; a view's cost is the slots it would
+        take now (its count grown with the Gaussians since)."""
+        count, rank, world = len(views), self.ranks.rank, self.ranks.world
+        lookahead = self.lookahead
+        splits = count % world == 0 and count >= 2 * world
+        if self.config.dist_balance == "counts" and world > 1 and lookahead is not None and splits:
+            scale = self._downscale(first)
+            costs = [lookahead.capacity(v, self.model.num, scale, agreed=True) for v in views]
+            if all(cost is not None for cost in costs):
+                self.balanced_steps += 1
+                return balanced_positions(costs, rank, world)
+        return my_positions(count, rank, world)
 
     def _reduce(
         self,
@@ -1261,6 +1285,8 @@ class Trainer:
             result["cuda_graph"] = self.graphs.summary()
         else:
             result["cuda_graph"] = {"off": self.graph_off}
+        if self.config.dist_balance != "none":
+            result["dist_balance"] = {"mode": self.config.dist_balance, "balanced_steps": self.balanced_steps}
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
             summaries = self.ranks.all_gather_object(self._communication_summary())
