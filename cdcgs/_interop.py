@@ -210,8 +210,8 @@ class TorchWarpBridge:
     def scope(self, device: torch.device):
         """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe).
 
-        A scope nested in one for the same device and torch stream in the same thread costs
-        nothing: the outer one's device and stream stay. Nested under another torch stream (a
+        A scope nested in one for the same device and torch stream in the same thread costs only
+        the look at torch's current stream: the outer one's device and stream stay. Nested under another torch stream (a
         ``torch.cuda.stream`` entered inside the outer scope), it runs Warp on that stream until it
         ends.
         """

@@ -222,12 +222,17 @@ def train(
         return result
 
     Trainer.train_step = step
-    splits = []  # (iteration, positions) of every split of a step's views (Trainer.positions)
+    # (iteration, positions, the views' agreed costs or None) of every split of a step's views
+    splits = []
     real_positions = Trainer.positions
 
     def positions(self, first, views):
         mine = real_positions(self, first, views)
-        splits.append((first, list(mine)))
+        costs = None
+        if self.lookahead is not None:
+            scale = self._downscale(first)
+            costs = [self.lookahead.capacity(v, self.model.num, scale, agreed=True) for v in views]
+        splits.append((first, list(mine), costs))
         return mine
 
     patched.append((Trainer, "positions", real_positions))

@@ -331,13 +331,14 @@ def test_replayed_steps_of_two_views_per_process_are_the_eager_ones(small_scene,
     assert "--batch-size that 2 processes divide, not 3" in outs[0]["message"]
 
 
-def test_views_split_by_their_counts_are_the_batch_of_one_process(small_scene, tmp_path):
+def test_views_split_by_their_counts_are_the_batch_of_one_process(small_scene, tmp_path, capsys):
     """--dist-balance counts, batches of 4 on two processes: once the counts are agreed, each step's
     views are split by them (every position rendered by one process, two each; some steps not in
     the default split), the eager steps (--sync-free) and the replayed ones train the same bits on
     both processes, also where renders overflow their slots and the processes go back, and the run
     is the one-process batch of 4 within float rounding (the same views and gradients, summed in
-    another order). With --dist-exchange colours it is refused."""
+    another order). One process says that it has nothing to split; with --dist-exchange colours
+    the option is refused."""
     runs = {}
     ways = {
         "eager": {"sync_free": True},
@@ -357,16 +358,30 @@ def test_views_split_by_their_counts_are_the_batch_of_one_process(small_scene, t
             **options,
         )
         runs[name] = ok(two)
-    one = ok([run_here("train", scene=small_scene, out=tmp_path / "one", iters=LONGER, batch_size=4, sync_free=True)])[
-        0
-    ]
+    capsys.readouterr()
+    one = run_here(
+        "train",
+        scene=small_scene,
+        out=tmp_path / "one",
+        iters=LONGER,
+        batch_size=4,
+        sync_free=True,
+        dist_balance="counts",  # one process: nothing to split, and it says so
+    )
+    one = ok([one])[0]
+    assert "--dist-balance counts: one process; the views split by position" in capsys.readouterr().out
+    assert one["dist_balance"] == {"mode": "counts", "balanced_steps": 0}
     for r0, r1 in runs.values():
         assert r0["checksums"] == r1["checksums"]
         assert r0["dist_balance"]["balanced_steps"] == r1["dist_balance"]["balanced_steps"] > 0
         moved = 0
-        for (first, mine), (other_first, theirs) in zip(r0["splits"], r1["splits"]):
-            assert first == other_first and sorted(mine + theirs) == [0, 1, 2, 3] and len(mine) == 2
+        for (first, mine, costs), (other_first, theirs, other_costs) in zip(r0["splits"], r1["splits"]):
+            assert first == other_first and costs == other_costs
+            assert sorted(mine + theirs) == [0, 1, 2, 3] and len(mine) == 2
             moved += mine != my_positions(4, 0, 2)
+            if costs is not None and None not in costs:  # the views' own costs, at least as even as by position
+                largest = max(sum(costs[p] for p in mine), sum(costs[p] for p in theirs))
+                assert largest <= max(sum(costs[p] for p in my_positions(4, r, 2)) for r in (0, 1))
         assert moved > 0, "no step left the default split"
         assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]]
         # 40 iterations of Adam carry the sums' rounding further than 12 do: the default split
@@ -410,18 +425,22 @@ def test_the_split_by_counts_pairs_the_costliest_with_the_cheapest():
     rng = random.Random(3)
     for world, share in ((2, 2), (2, 3), (3, 2), (4, 2), (2, 5)):
         batch = world * share
-        for _ in range(30):
+        for turn in range(30):
             costs = [rng.randint(1, 1000) for _ in range(batch)]
-            split = [balanced_positions(costs, rank, world) for rank in range(world)]
+            split = [balanced_positions(costs, rank, world, turn) for rank in range(world)]
             assert sorted(p for mine in split for p in mine) == list(range(batch))
             assert all(len(mine) == share and mine == sorted(mine) for mine in split)
             if share == 2:  # the split of least largest load, by brute force over every pairing
                 largest = max(sum(costs[p] for p in mine) for mine in split)
                 best = min(max(costs[a] + costs[b] for a, b in pairs) for pairs in pairings(list(range(batch))))
                 assert largest == best, (costs, split)
-    # 9 with 1 and 5 with 3; ties go to the earlier position and the lower rank
+    # 9 with 1 and 5 with 3; the costliest view to rank ``turn`` (mod the processes); ties go to
+    # the earlier position
     assert [balanced_positions([5, 1, 9, 3], rank, 2) for rank in (0, 1)] == [[1, 2], [0, 3]]
+    assert [balanced_positions([5, 1, 9, 3], rank, 2, turn=1) for rank in (0, 1)] == [[0, 3], [1, 2]]
     assert [balanced_positions([2, 2, 2, 2], rank, 2) for rank in (0, 1)] == [[0, 2], [1, 3]]
+    assert [balanced_positions([2, 2, 2, 2], rank, 2, turn=3) for rank in (0, 1)] == [[1, 3], [0, 2]]
+    assert [balanced_positions([7, 1, 4, 2, 9, 3], rank, 3, turn=2) for rank in (0, 1, 2)] == [[0, 3], [2, 5], [1, 4]]
     with pytest.raises(ValueError, match="does not split evenly"):
         balanced_positions([1, 2, 3], 0, 2)
 

@@ -592,6 +592,7 @@ def test_a_scope_under_another_torch_stream_launches_on_that_stream(device):
             assert wp.get_stream().cuda_stream == outer
         with torch.cuda.stream(side), warp_scope(device):
             assert wp.get_stream().cuda_stream == side.cuda_stream
+            torch.cuda._sleep(200_000_000)  # about 0.1 s of the side stream: the launch queues behind it
             launch(
                 find_nonfinite_kernel,
                 64,
@@ -599,5 +600,8 @@ def test_a_scope_under_another_torch_stream_launches_on_that_stream(device):
                 outputs=[wp_arg(flags, wp.int32)],
             )
         assert wp.get_stream().cuda_stream == outer
-    side.synchronize()  # the launch was queued on the side stream: waiting for it alone suffices
+    # Read on the caller's stream, which does not wait for the side one: still unset, so the
+    # launch went to the side stream (on the caller's, the read would have waited for it).
+    assert flags.tolist() == [0] * 6
+    side.synchronize()
     assert flags.tolist() == [1] * 6

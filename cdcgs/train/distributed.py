@@ -67,20 +67,22 @@ def my_positions(batch: int, rank: int, world: int) -> list[int]:
     return list(range(rank, batch, world))
 
 
-def balanced_positions(costs: list, rank: int, world: int) -> list[int]:
+def balanced_positions(costs: list, rank: int, world: int, turn: int = 0) -> list[int]:
     """The positions of a step's batch that ``rank`` of ``world`` renders when the view at position
     ``p`` costs ``costs[p]`` (e.g. its intersection count): every process takes ``len(costs) /
     world`` of them (the batch a multiple of ``world``), the costliest first, each to the process
-    with the least cost so far (ties: the earlier position, the lower rank), so that the processes
-    reach the all-reduce together. Two views a process pairs the costliest with the cheapest.
-    Every process computes the same split from the same costs. Returned in batch order."""
+    with the least cost so far, so that the processes reach the all-reduce together. Two views a
+    process pairs the costliest with the cheapest. Ties go to the earlier position, and among
+    processes of equal cost to the first from rank ``turn % world`` on (the step's number: the
+    costliest view goes to each process in turn, so rank 0's logged losses are of no one kind of
+    view). Every process computes the same split from the same costs. Returned in batch order."""
     batch = len(costs)
     if world < 1 or batch % world:
         raise ValueError(f"a batch of {batch} views does not split evenly over {world} processes")
     share = batch // world
     loads, taken = [0.0] * world, [[] for _ in range(world)]
     for position in sorted(range(batch), key=lambda p: (-costs[p], p)):
-        owner = min((r for r in range(world) if len(taken[r]) < share), key=lambda r: (loads[r], r))
+        owner = min((r for r in range(world) if len(taken[r]) < share), key=lambda r: (loads[r], (r - turn) % world))
         taken[owner].append(position)
         loads[owner] += costs[position]
     return sorted(taken[rank])

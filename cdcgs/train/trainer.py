@@ -939,6 +939,17 @@ class Trainer:
         target = photo.float() / 255.0
         return photometric_loss(image, target, config.ssim_weight), psnr(image.detach(), target)
 
+    def _balance_refusal(self) -> str | None:
+        """Why ``--dist-balance counts`` cannot split any step of this run, or None."""
+        world, batch = self.ranks.world, self.config.batch_size
+        if world < 2:
+            return "one process"
+        if batch % world or batch < 2 * world:
+            return f"--batch-size {batch} is not two views or more for each of {world} processes"
+        if self.lookahead is None:
+            return f"no counts to split by (--sync-free or the replayed steps give them; {self.graph_off})"
+        return None
+
     def positions(self, first: int, views: list[int]) -> list[int]:
         """The positions of the step's batch (``views``, beginning at iteration ``first``) that
         this process renders: rank, rank + processes, ..., or with ``--dist-balance counts`` the
@@ -954,7 +965,7 @@ class Trainer:
             costs = [lookahead.capacity(v, self.model.num, scale, agreed=True) for v in views]
             if all(cost is not None for cost in costs):
                 self.balanced_steps += 1
-                return balanced_positions(costs, rank, world)
+                return balanced_positions(costs, rank, world, turn=first // count)
         return my_positions(count, rank, world)
 
     def _reduce(
@@ -1134,6 +1145,10 @@ class Trainer:
         if self.ranks.distributed:  # after the verdict: a collective inside the set-up could meet a failed one
             self._agree_on_lpips()
             self._agree_on_graphs()
+        if self.ranks.is_main and self.config.dist_balance == "counts":
+            why = self._balance_refusal()
+            if why is not None:
+                print(f"--dist-balance counts: {why}; the views split by position")
         try:  # agreed on too: a failed write stops every process with its cause, not by a timeout
             if self.ranks.is_main:
                 outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
