@@ -211,9 +211,9 @@ class TorchWarpBridge:
         """Run Warp on the tensors' device and, on CUDA, on torch's current stream (thread-safe).
 
         A scope nested in one for the same device and torch stream in the same thread costs only
-        the look at torch's current stream: the outer one's device and stream stay. Nested under another torch stream (a
-        ``torch.cuda.stream`` entered inside the outer scope), it runs Warp on that stream until it
-        ends.
+        the look at torch's current stream: the outer one's device and stream stay. Nested under
+        another torch stream (a ``torch.cuda.stream`` entered inside the outer scope), it runs
+        Warp on that stream until it ends.
         """
         # A scope under another torch stream than the outer one's is a scope of its own, so that a
         # caller's ``torch.cuda.stream`` reaches the launches of cdcgs functions it calls.
