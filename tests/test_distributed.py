@@ -137,21 +137,30 @@ def test_only_rank_0_writes(runs_3dgs):
 
 
 @pytest.mark.parametrize(
-    "strategy, options",
+    "strategy, options, replayed",
     [
-        ("cdc", {**SCHEDULE, "periodic_prune_every": 8}),
-        ("cdc", {**SCHEDULE, "complexity_schedule": "online", "view_aggregation": "mean"}),
-        ("mcmc", MCMC_SCHEDULE),
+        ("cdc", {**SCHEDULE, "periodic_prune_every": 8}, False),
+        ("cdc", {**SCHEDULE, "complexity_schedule": "online", "view_aggregation": "mean"}, False),
+        ("mcmc", MCMC_SCHEDULE, False),
+        ("mcmc", MCMC_SCHEDULE, True),
     ],
-    ids=["cdc", "cdc-online-mean", "mcmc"],
+    ids=["cdc", "cdc-online-mean", "mcmc", "mcmc-replayed"],
 )
-def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, options):
-    """CDC's Γ pass split over the ranks, its online statistics reduced, MCMC's draws seeded by step."""
+def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, options, replayed):
+    """CDC's Γ pass split over the ranks, its online statistics reduced, MCMC's draws seeded by step
+    (the two processes' MCMC steps replayed, its noise drawn after each replay on every process,
+    against one process without them)."""
+    extra = {"cuda_graph": True} if replayed else {}
     r0, r1 = ok(
-        run_ranks("train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", strategy=strategy, options=options)
+        run_ranks(
+            "train", 2, tmp_path, scene=small_scene, out=tmp_path / "two", strategy=strategy, options=options, **extra
+        )
     )
     one = ok([run_here("train", scene=small_scene, out=tmp_path / "one", strategy=strategy, options=options)])[0]
     assert r0["checksums"] == r1["checksums"]
+    if replayed:
+        counts = [r["cuda_graph"]["replayed_steps"] for r in (r0, r1)]
+        assert counts[0] == counts[1] > 0, counts
     assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] and r0["events"]
     assert_params_close(r0["params"], one["params"], rtol=1e-4, atol=1e-5)
 

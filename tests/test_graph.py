@@ -26,6 +26,13 @@ CPU_ONLY = pytest.mark.skipif(
 )
 
 
+# CDC's online Γ: its hooks read each view's map on the host, so its steps are not captured
+ONLINE = {"complexity_schedule": "online"}
+# MCMC's schedule for these runs: relocation and growth every 20 iterations (the scene's 1,500
+# points grow by 5% each time, to at most the budget), so that the graphs meet new Gaussians too
+MCMC_SHORT = {"refine_from": 20, "refine_until": 100, "refine_every": 20, "target_gaussians": 2000}
+
+
 @CPU_ONLY
 @pytest.mark.parametrize(
     "strategy, overrides",
@@ -34,18 +41,34 @@ CPU_ONLY = pytest.mark.skipif(
         ("absgs", {"optimizer": "selective"}),
         ("fast", {}),
         ("cdc", {}),
+        ("mcmc", {}),
+        ("mcmc-cdc", {}),
         ("3dgs", {"batch_size": 2}),
         ("absgs", {"optimizer": "selective", "batch_size": 3}),
         ("cdc", {"batch_size": 2}),
+        ("mcmc", {"batch_size": 2}),
     ],
-    ids=["3dgs", "absgs-selective", "fast", "cdc", "3dgs-batch-2", "absgs-selective-batch-3", "cdc-batch-2"],
+    ids=[
+        "3dgs",
+        "absgs-selective",
+        "fast",
+        "cdc",
+        "mcmc",
+        "mcmc-cdc",
+        "3dgs-batch-2",
+        "absgs-selective-batch-3",
+        "cdc-batch-2",
+        "mcmc-batch-2",
+    ],
 )
 def test_a_graph_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path, strategy, overrides):
     """Replayed steps, of one view or of a batch (its views rendered in turn in one graph, the
-    gradients averaged, one Adam step), train the steps that run one operation at a time."""
-    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", strategy, SHORT, background="white", **overrides)
+    gradients averaged, one Adam step), train the steps that run one operation at a time. MCMC's
+    regulariser is in the graph and its noise after it, drawn as without graphs."""
+    options = MCMC_SHORT if strategy.startswith("mcmc") else SHORT
+    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", strategy, options, background="white", **overrides)
     graphed, result = train_briefly(
-        tiny_scene, tmp_path / "graph", strategy, SHORT, background="white", cuda_graph=True, **overrides
+        tiny_scene, tmp_path / "graph", strategy, options, background="white", cuda_graph=True, **overrides
     )
     assert_same_model(counted, graphed)
     assert counted.guard.means() == graphed.guard.means()
@@ -162,26 +185,31 @@ def tiny_scene_views(scene_dir):
     "overrides, message",
     [
         ({"background": "random"}, "fixed background"),
-        ({"strategy": "mcmc"}, "mcmc strategy"),
+        ({"strategy": "cdc"}, "complexity-schedule online"),
         ({"optimizer": "torch-adam"}, "torch-adam"),
     ],
 )
 def test_cuda_graph_refuses_what_it_cannot_capture(tiny_scene, tmp_path, overrides, message):
     values = {"iters": 10, "background": "white", "cuda_graph": True, **overrides}
+    options = ONLINE if overrides.get("strategy") == "cdc" else None
     with pytest.raises(OptionError, match=message):
-        Trainer(tiny_config(tiny_scene, tmp_path / "run", **values)).run()
+        Trainer(tiny_config(tiny_scene, tmp_path / "run", **values), options).run()
 
 
 @pytest.mark.parametrize("device", ["cuda"])
+@pytest.mark.parametrize("strategy", ["3dgs", "mcmc"])
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="captures CUDA graphs: needs a CUDA GPU")
-def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_counted_runs(tiny_scene, tmp_path, device):
+def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_counted_runs(
+    tiny_scene, tmp_path, device, strategy
+):
     """On CUDA the steps are captured and replayed, by default. The blend's atomic sums make two
     runs differ a little, so the replayed run is compared with the spread of two counted runs
-    (``--no-cuda-graph``)."""
+    (``--no-cuda-graph``). MCMC: its regulariser captured, its noise drawn after each replay."""
     values = dict(background="white", device=device)
+    options = MCMC_SHORT if strategy.startswith("mcmc") else SHORT
     runs = {}
     for name, extra in (("counted", {"cuda_graph": False}), ("again", {"cuda_graph": False}), ("graph", {})):
-        trainer, result = train_briefly(tiny_scene, tmp_path / name, "3dgs", SHORT, **values, **extra)
+        trainer, result = train_briefly(tiny_scene, tmp_path / name, strategy, options, **values, **extra)
         runs[name] = (trainer, result)
     summary = runs["graph"][1]["cuda_graph"]
     assert summary["replayed_steps"] > ITERS // 2 and summary["captures"] >= 2, summary
@@ -257,11 +285,11 @@ def test_the_default_on_the_cpu_trains_without_graphs_and_says_why(tiny_scene, t
     "values, callbacks, off",
     [
         ({"cuda_graph": False}, (), "--no-cuda-graph"),
-        ({"strategy": "mcmc"}, (), "mcmc strategy"),
+        ({"strategy": "cdc"}, (), "complexity-schedule online"),
         ({"optimizer": "torch-adam"}, (), "torch-adam"),
         ({}, (_Viewer(),), "drop --view"),
     ],
-    ids=["off", "mcmc", "torch-adam", "viewer"],
+    ids=["off", "cdc-online", "torch-adam", "viewer"],
 )
 def test_the_default_gives_way_where_the_training_cannot_replay(
     tiny_scene, tmp_path, monkeypatch, values, callbacks, off
@@ -270,8 +298,31 @@ def test_the_default_gives_way_where_the_training_cannot_replay(
     else trains without and records why in metrics.json (the explicit option refuses instead)."""
     _as_on_cuda(monkeypatch)
     config = tiny_config(tiny_scene, tmp_path / "run", iters=10, background="white", **values)
-    result = Trainer(config, callbacks=callbacks).run()
+    options = ONLINE if values.get("strategy") == "cdc" else None
+    result = Trainer(config, options, callbacks=callbacks).run()
     assert off in result["cuda_graph"]["off"], result["cuda_graph"]
+
+
+def test_a_strategy_without_a_graph_signature_is_not_captured(tiny_scene, tmp_path, monkeypatch):
+    """A strategy of the Strategy protocol alone (no ``graph_signature``, e.g. a user's own) says
+    nothing of what its hooks read between steps: its steps are not captured, and the refusal says
+    so."""
+    import cdcgs.train.trainer as trainer_module
+
+    class Plain:  # the wrapped strategy's hooks, without graph_signature
+        def __init__(self, inner):
+            self._inner = inner
+
+        def __getattr__(self, name):
+            if name == "graph_signature":
+                raise AttributeError(name)
+            return getattr(self._inner, name)
+
+    real = trainer_module.make_strategy
+    monkeypatch.setattr(trainer_module, "make_strategy", lambda *args, **kwargs: Plain(real(*args, **kwargs)))
+    config = tiny_config(tiny_scene, tmp_path / "run", iters=10, background="white", cuda_graph=True)
+    with pytest.raises(OptionError, match=r"cannot replay the 3dgs strategy.s steps.*drop --cuda-graph for it"):
+        Trainer(config).run()
 
 
 def test_cuda_graph_refuses_a_viewer_callback(tiny_scene, tmp_path):

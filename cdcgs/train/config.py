@@ -195,7 +195,7 @@ class TrainConfig:
     )
     cuda_graph: bool | None = option(
         None,
-        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (a --batch-size that the processes divide, on several processes with the step's all-reduce in the graph; views of one size; a fixed background; adam or selective; the densifying strategies, not mcmc; not with --view) (none: as the resumed run chose, else on wherever the training can take it on CUDA and off elsewhere, saying why)",
+        "--sync-free, and each step between two refinements replayed as one CUDA graph (captured again after a refinement, a new SH degree or a larger count), so the host only picks the view and the rates: the same training, about 0.74x the time of bonsai's 3dgs on an H100; on the CPU the same steps run one operation at a time (a --batch-size that the processes divide, on several processes with the step's all-reduce in the graph; views of one size; a fixed background; adam or selective; not with --complexity-schedule online; not with --view) (none: as the resumed run chose, else on wherever the training can take it on CUDA and off elsewhere, saying why)",
     )
     batch_size: int = option(
         1,

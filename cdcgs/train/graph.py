@@ -334,10 +334,9 @@ class GraphSteps:
             # the signature's: every step of the graph shares what the hooks read of it
             ctx = trainer._context(first + position, info, None)
             trainer.strategy.before_backward(ctx, trainer.strategy_state)
-            if trainer.strategy.regularizer(ctx) is not None:
-                raise RuntimeError(
-                    f"the {config.strategy} strategy adds a regulariser, which --cuda-graph does not capture"
-                )
+            regularizer = trainer.strategy.regularizer(ctx)  # device operations on the Gaussians: captured
+            if regularizer is not None:
+                loss = loss + regularizer
             trainer._backward(loss, info)
             seen.append((loss, image_psnr, ctx))
             if config.optimizer == "selective":

@@ -219,6 +219,18 @@ class MCMC(Consistency, StrategyOptions):
     def statistics(self) -> dict:
         return self.consistency_statistics()
 
+    def graph_signature(self, step: int):
+        """What a captured step (``--cuda-graph``) of iteration ``step`` depends on in these hooks:
+        nothing that changes between two relocations. The regulariser is device operations on the
+        Gaussians, captured with the loss; the position noise is drawn and added in
+        :meth:`after_step`, which the trainer calls after the replay, eagerly, from the step's
+        generator and the position learning rate of the host, as without graphs. The online Γ
+        (``mcmc-cdc --complexity-schedule online``) reads each view's map by its index on the
+        host: never captured."""
+        if self.needs_complexity and self.complexity_schedule == "online":
+            return None
+        return True
+
     def observe(self, ctx: StepContext, state: dict) -> None:
         if self.accumulates_at(ctx.step):
             self.accumulate_complexity(ctx, state)
