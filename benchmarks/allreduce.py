@@ -40,10 +40,13 @@ WIDTHS = {"means": 3, "log_scales": 3, "quats": 4, "opacity_logits": 1, "sh_dc":
 STATISTICS = 2  # floats per Gaussian of 3dgs's additions (gradient norms and view counts)
 
 
-def timed(device: torch.device, call, repeats: int) -> float:
-    """Median milliseconds of ``call()`` over ``repeats`` rounds (two untimed first)."""
+def timed(device: torch.device, call, repeats: int, before=None) -> float:
+    """Median milliseconds of ``call()`` over ``repeats`` rounds (two untimed first); ``before()``
+    runs before each round's clock starts (e.g. a barrier, so that the processes start together)."""
     times = []
     for round_ in range(repeats + 2):
+        if before is not None:
+            before()
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         start = time.perf_counter()
@@ -104,13 +107,17 @@ def table(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--gaussians", type=int, nargs="+", default=[1_000_000, 3_000_000, 6_000_000])
-    parser.add_argument("--repeats", type=int, default=20)
+def launch_options(parser: argparse.ArgumentParser, gaussians: list[int], repeats: int) -> None:
+    """The options of a benchmark run by torchrun on several processes (this one's and shard_step.py's)."""
+    parser.add_argument("--gaussians", type=int, nargs="+", default=gaussians)
+    parser.add_argument("--repeats", type=int, default=repeats, help="timed rounds (steps)")
     parser.add_argument("--device", default="auto", help="auto (a GPU per process) or cpu")
     parser.add_argument("--out", default=None, help="JSON file of the results (rank 0 writes it)")
-    args = parser.parse_args(argv)
+
+
+def join(parser: argparse.ArgumentParser, args) -> tuple[Ranks, torch.device]:
+    """Check :func:`launch_options`' values and join the launch: this process's ranks and device;
+    a parser error on one process."""
     if any(n < 1 for n in args.gaussians):
         parser.error(f"--gaussians must be positive, got {args.gaussians}")
     if args.repeats < 1:
@@ -123,24 +130,42 @@ def main(argv=None) -> int:
     ranks = Ranks.from_environment(device)
     if not ranks.distributed:
         parser.error("one process: launch with torchrun --nproc_per_node=2 (or more)")
-    try:
-        rows = [measure(ranks, device, n, args.repeats) for n in args.gaussians]
-    finally:
-        ranks.close(wait=True)
-    if not ranks.is_main:
-        return 0
-    report = {
+    return ranks, device
+
+
+def report_of(ranks: Ranks, device: torch.device, args, rows: list[dict], **extra) -> dict:
+    """The results with the launch, the machine and the date."""
+    return {
         "processes": ranks.world,
         "backend": ranks.backend,
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "date": datetime.date.today().isoformat(),
         "repeats": args.repeats,
+        **extra,
         "rows": rows,
     }
-    print(table(report))
-    if args.out:
-        with open(args.out, "w") as f:
+
+
+def publish(report: dict, text: str, out: str | None) -> None:
+    """Rank 0's: print the table, write the JSON."""
+    print(text)
+    if out:
+        with open(out, "w") as f:
             json.dump(report, f, indent=1)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    launch_options(parser, [1_000_000, 3_000_000, 6_000_000], 20)
+    args = parser.parse_args(argv)
+    ranks, device = join(parser, args)
+    try:
+        rows = [measure(ranks, device, n, args.repeats) for n in args.gaussians]
+    finally:
+        ranks.close(wait=True)
+    if ranks.is_main:
+        report = report_of(ranks, device, args, rows)
+        publish(report, table(report), args.out)
     return 0
 
 

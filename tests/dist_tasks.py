@@ -345,3 +345,78 @@ def lpips_agreement(rank, world, scene, out):
         return Trainer(task_config(scene, out, iters=4), dict(SCHEDULE)).run()["test"]
     finally:
         trainer_module.lpips_metric = real
+
+
+def sharded_render(rank, world, rows, seed=0, width=40, height=30, sh_degree=2, split=False, spoil=None):
+    """rasterize_shard on this rank's slice of a random scene (``rows``: the slices' sizes), the
+    view of camera ``rank`` of an orbit, and the backward pass of a fixed weighting of its image:
+    (the image, the alpha, the intersection count, the slice's gradients); ``split``: the SH passed
+    as ``sh`` (degree 0) and ``sh_rest``, the gradient of the two concatenated; ``spoil``: (rank,
+    "shape" or "nan"): that rank passes a means tensor of the wrong shape, or a NaN in it."""
+    import torch
+    import torch.distributed as dist
+
+    from cdcgs.train.shards import rasterize_shard
+
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    try:
+        scene, cameras, weights = sharded_scene(sum(rows), world, seed, width, height, sh_degree)
+        start = sum(rows[:rank])
+        mine = [t[start : start + rows[rank]].clone().requires_grad_(True) for t in scene]
+        if spoil is not None and spoil[0] == rank:
+            if spoil[1] == "shape":
+                mine[0] = mine[0][1:]
+            else:
+                mine[0] = mine[0].detach().clone()
+                mine[0][0, 1] = float("nan")
+        sh = {"sh": mine[4]}
+        if split:
+            sh = {"sh": mine[4][:, :1].detach().clone().requires_grad_(True)}
+            sh["sh_rest"] = mine[4][:, 1:].detach().clone().requires_grad_(True)
+        image, alpha, info = rasterize_shard(
+            *mine[:4],
+            **sh,
+            sh_degree=sh_degree,
+            cameras=cameras,
+            rows=list(rows),
+            background=torch.tensor([0.2, 0.3, 0.4]),
+        )
+        absgrad = info.retain_absgrad()  # AbsGS's sums over the whole scene's projection into this view
+        ((image * weights[rank]).sum() + (alpha * weights[rank][..., 0]).sum()).backward()
+        grads = [t.grad for t in mine[:4]]
+        grads.append(torch.cat([sh["sh"].grad, sh["sh_rest"].grad], 1) if split else mine[4].grad)
+        return {
+            "image": image.detach(),
+            "alpha": alpha.detach(),
+            "intersections": int(info.num_intersections),
+            "absgrad": absgrad,
+            "grads": grads,
+        }
+    finally:
+        dist.destroy_process_group()
+
+
+def sharded_scene(n, views, seed, width, height, sh_degree):
+    """Random Gaussians around the origin ([means, quats, scales, opacities, sh]), ``views``
+    prepared cameras on an orbit around them, and a random weight image per view."""
+    import math
+
+    import torch
+    from scenes import look_at_w2c
+
+    from cdcgs.render import prepare_camera
+
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g) * 2 - 1
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.rand(n, 3, generator=g) * 0.15 + 0.02
+    opacities = torch.rand(n, generator=g) * 0.9 + 0.05
+    sh = torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g) * 0.3
+    K = torch.tensor([[0.9 * width, 0.0, 0.5 * width], [0.0, 0.9 * width, 0.5 * height], [0.0, 0.0, 1.0]])
+    cameras = []
+    for v in range(views):
+        angle = 2 * math.pi * v / views
+        w2c = torch.tensor(look_at_w2c((3.5 * math.sin(angle), -0.8, -3.5 * math.cos(angle))), dtype=torch.float32)
+        cameras.append(prepare_camera(w2c, K, width, height))
+    weights = [torch.rand(height, width, 3, generator=g) for _ in range(views)]
+    return [means, quats, scales, opacities, sh], cameras, weights

@@ -819,3 +819,28 @@ def test_the_tables_name_the_commit_and_say_when_the_tree_differs(tmp_path, monk
     monkeypatch.setattr(training_table, "ROOT", str(outside))
     monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path))
     assert training_table.commit() == "unknown"
+
+
+def test_shard_step_times_the_three_ways_on_two_processes(tiny_scene, tmp_path):
+    import shard_step
+
+    out = tmp_path / "shard_step.json"
+    script = os.path.join(os.path.dirname(shard_step.__file__), "shard_step.py")
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", script]
+    command += ["--data", str(tiny_scene), "--device", "cpu", "--gaussians", "301", "--repeats", "1", "--out", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(out.read_text())
+    assert (report["processes"], report["backend"], report["size"]) == (2, "gloo", "48 x 36")
+    (row,) = report["rows"]
+    assert (row["gaussians"], row["slices"]) == (301, [151, 150])
+    assert min(row[f"{way}_ms"] for way in shard_step.WAYS) > 0
+    assert row["views_alone_ms"] >= row["one_view_ms"]  # the sum of both processes' own views
+    for way in shard_step.WAYS[1:]:
+        assert row[f"{way}_speedup"] == pytest.approx(row["views_alone_ms"] / row[f"{way}_ms"])
+    assert done.stdout.count("| 301 |") == 1, "rank 0 alone prints the table"
+    assert shard_step.slices(10, 3) == [4, 3, 3]
+    with pytest.raises(SystemExit):
+        shard_step.main(["--data", str(tiny_scene), "--device", "cpu"])  # one process: refused
+    with pytest.raises(SystemExit):
+        shard_step.main(["--data", str(tiny_scene), "--gaussians", "0"])

@@ -1,0 +1,163 @@
+"""The render of a step on sharded Gaussians against data parallelism's, on several processes.
+
+    torchrun --standalone --nproc_per_node=2 benchmarks/shard_step.py --data SCENE --images images \
+        [--ply run/point_cloud.ply] [--gaussians 1000000 6000000] [--repeats 20] [--out shard_step.json] [--device auto]
+
+For each count N, every process holds the same N Gaussians (those of ``--ply``, a trained model,
+or the scene's points, resampled to N as ``benchmarks/profile_step.py`` does, SH degree 3), and
+process r renders training view (step x W + r) of the scene at each timed step. Three ways, each
+timed per step with a synchronisation before and after (the median of ``--repeats`` steps after two
+untimed ones):
+
+- ``one view``: the whole scene rendered into the process's view, forward and backward of a
+  weighted sum of the image (what one process does per view);
+- ``data parallel``: the same, then ``Ranks.reduce_gradients`` of the six parameters' gradients
+  (59 floats a Gaussian; the densification statistics that a training sends with them are left
+  out);
+- ``sharded``: :func:`cdcgs.train.shards.rasterize_shard` with the process's slice of the N
+  Gaussians (N / W each, in order), forward and backward.
+
+What W processes would gain over one for the render and its exchange alone is the time one
+process takes for the step's W views (the sum of the processes' ``one view`` medians) over the
+step: printed as each way's "speed-up" (Adam, the loss and the host's other work per step are not
+in it; sharded, each process's Adam would update N / W Gaussians instead of N). A barrier before
+each timed round starts the processes together. Rank 0
+prints the table and writes ``--out`` (JSON) with the machine and the date. ``--device auto``
+puts process i on GPU i (NCCL), ``cpu`` runs on the CPU (gloo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+
+import torch
+import torch.distributed as dist
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+sys.path.insert(0, os.path.dirname(HERE))
+
+from allreduce import join, launch_options, publish, report_of, timed
+from profile_step import resampled
+
+from cdcgs.io import load_scene, read_ply
+from cdcgs.render import prepare_camera, rasterize
+from cdcgs.train.distributed import Ranks
+from cdcgs.train.model import GaussianModel
+from cdcgs.train.shards import rasterize_shard
+
+WAYS = ("one_view", "data_parallel", "sharded")
+
+
+def slices(n: int, world: int) -> list[int]:
+    """N Gaussians over ``world`` processes, in order: the first N mod W take one more."""
+    return [n // world + (1 if r < n % world else 0) for r in range(world)]
+
+
+def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: list, n: int, repeats: int) -> dict:
+    """The three timings at ``n`` Gaussians (every process calls this with the same ``n``)."""
+    generator = torch.Generator(device=device).manual_seed(0)  # the same Gaussians on every process
+    model = resampled(source, n, generator)
+    params = {k: v.requires_grad_(True) for k, v in model.params.items()}
+    world, rank = ranks.world, ranks.rank
+    rows = slices(n, world)
+    start = sum(rows[:rank])
+    mine = {k: v.detach()[start : start + rows[rank]].clone().requires_grad_(True) for k, v in params.items()}
+    weight = torch.rand(cameras[0].height, cameras[0].width, 3, device=device, generator=generator)
+
+    def view_of(step: int) -> int:
+        return (step * world + rank) % len(cameras)
+
+    def whole(step: int) -> None:
+        for p in params.values():
+            p.grad = None
+        image, _, _ = rasterize(**model.render_args(), camera=cameras[view_of(step)])
+        (image * weight).sum().backward()
+
+    def data_parallel(step: int) -> None:
+        whole(step)
+        ranks.reduce_gradients(params.values(), world)
+
+    def sharded(step: int) -> None:
+        for p in mine.values():
+            p.grad = None
+        views = [cameras[(step * world + r) % len(cameras)] for r in range(world)]
+        image, _, _ = rasterize_shard(
+            mine["means"],
+            mine["quats"],
+            mine["log_scales"].exp(),
+            torch.sigmoid(mine["opacity_logits"]),
+            mine["sh_dc"],
+            sh_rest=mine["sh_rest"],
+            sh_degree=model.sh_degree,
+            cameras=views,
+            rows=rows,
+        )
+        (image * weight).sum().backward()
+
+    row = {"gaussians": n, "slices": rows}
+    for name, call in zip(WAYS, (whole, data_parallel, sharded)):
+        steps = itertools.count()  # each round renders the next views
+        row[f"{name}_ms"] = timed(
+            device, lambda call=call, steps=steps: call(next(steps)), repeats, before=dist.barrier
+        )
+    # one process rendering the step's W views: the sum of the processes' own views' medians
+    alone = torch.tensor([row["one_view_ms"]], dtype=torch.float64, device=device)
+    row["views_alone_ms"] = float(ranks.all_reduce_(alone)[0])
+    for name in WAYS[1:]:
+        row[f"{name}_speedup"] = row["views_alone_ms"] / row[f"{name}_ms"]
+    return row
+
+
+def table(report: dict) -> str:
+    lines = [
+        f"{report['processes']} processes ({report['backend']}) on {report['device']}, {report['date']}, "
+        f"{report['views']} views of {report['size']}; median of {report['repeats']} steps "
+        "(`python benchmarks/shard_step.py`):",
+        "",
+        "| Gaussians | one view | data parallel | speed-up | sharded | speed-up |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in report["rows"]:
+        lines.append(
+            f"| {r['gaussians']:,} | {r['one_view_ms']:.2f} ms | {r['data_parallel_ms']:.2f} ms "
+            f"| {r['data_parallel_speedup']:.2f}× | {r['sharded_ms']:.2f} ms | {r['sharded_speedup']:.2f}× |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", required=True, help="scene folder (its training views' cameras)")
+    parser.add_argument("--images", default=None, help="image folder of the scene, e.g. images")
+    parser.add_argument("--ply", default=None, help="a trained model (default: the scene's points)")
+    launch_options(parser, [1_000_000, 6_000_000], 20)
+    args = parser.parse_args(argv)
+    if args.ply is not None and not os.path.isfile(args.ply):
+        parser.error(f"--ply {args.ply!r} is not a file")
+    ranks, device = join(parser, args)
+    try:
+        scene = load_scene(args.data, images=args.images, load_images_now=False, progress=False)
+        cameras = [prepare_camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
+        if len({(c.width, c.height) for c in cameras}) != 1:
+            parser.error(f"--data {args.data!r}: its training views have several sizes; the sharded render takes one")
+        if args.ply:
+            source = GaussianModel.from_ply(read_ply(args.ply), device=device)
+        else:
+            source = GaussianModel.from_points(scene.points, scene.colors, device=device)
+        source.sh_degree = source.max_sh_degree
+        rows = [measure(ranks, device, source, cameras, n, args.repeats) for n in args.gaussians]
+    finally:
+        ranks.close(wait=True)
+    if ranks.is_main:
+        size = f"{cameras[0].width} x {cameras[0].height}"
+        report = report_of(ranks, device, args, rows, views=len(cameras), size=size)
+        publish(report, table(report), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,96 @@
+"""Sharded Gaussians (``cdcgs.train.shards``): each process holds a slice of the scene and renders
+one view; the render and its gradients are those of one process rendering the whole scene."""
+
+import pytest
+import torch
+from dist_tasks import run_ranks, sharded_scene
+
+from cdcgs.render import rasterize
+
+
+@pytest.mark.parametrize(
+    "rows, split", [((70, 50), False), ((0, 90), True)], ids=["uneven", "an-empty-slice-sh-in-two"]
+)
+def test_a_sharded_render_is_the_whole_scenes_render(tmp_path, rows, split):
+    """Two processes (gloo, CPU), each with its slice (one empty), each rendering its view: the
+    image, the alpha and the intersection count are those of the whole scene's render of that
+    view, bit for bit, and each slice's gradients are the whole scene's gradient of the two
+    views' losses, restricted to the slice, and so are AbsGS's sums of each view (``split``: the SH as a trainer keeps them, degree 0
+    and the rest apart)."""
+    world, seed, width, height, degree = 2, 3, 40, 30, 2
+    outs = run_ranks("sharded_render", world, tmp_path, rows=rows, seed=seed, width=width, height=height, split=split)
+    for rank, out in enumerate(outs):
+        assert "result" in out, f"rank {rank}: {out.get('error')}: {out.get('message')}\n{out.get('traceback', '')}"
+    scene, cameras, weights = sharded_scene(sum(rows), world, seed, width, height, degree)
+    params = [t.clone().requires_grad_(True) for t in scene]
+    total, absgrads = 0.0, []
+    for view, camera in enumerate(cameras):
+        image, alpha, info = rasterize(
+            *params[:4], params[4], camera=camera, sh_degree=degree, background=torch.tensor([0.2, 0.3, 0.4])
+        )
+        got = outs[view]["result"]
+        assert torch.equal(got["image"], image.detach()), view
+        assert torch.equal(got["alpha"], alpha.detach()), view
+        assert got["intersections"] == info.num_intersections > 0
+        absgrads.append(info.retain_absgrad())
+        total = total + (image * weights[view]).sum() + (alpha * weights[view][..., 0]).sum()
+    total.backward()
+    for view, absgrad in enumerate(absgrads):  # AbsGS's sums of each view, over the whole scene
+        assert absgrad.abs().sum() > 0
+        torch.testing.assert_close(outs[view]["result"]["absgrad"], absgrad, rtol=1e-5, atol=1e-7)
+    start = 0
+    for rank, size in enumerate(rows):
+        for name, mine, whole in zip(
+            ("means", "quats", "scales", "opacities", "sh"), outs[rank]["result"]["grads"], params
+        ):
+            expected = whole.grad[start : start + size]
+            assert mine.shape == expected.shape, name
+            torch.testing.assert_close(mine, expected, rtol=1e-5, atol=1e-7, msg=f"rank {rank}: {name}")
+        start += size
+    assert sum(bool(p.grad.abs().sum() > 0) for p in params) == len(params)  # every parameter had a gradient
+
+
+def test_a_sharded_render_names_what_is_wrong():
+    """Bad arguments raise ValueError naming them (one process, a group of its own)."""
+    import torch.distributed as dist
+    from dist_tasks import free_port
+
+    from cdcgs.train.shards import rasterize_shard
+
+    scene, cameras, _ = sharded_scene(8, 2, 0, 16, 12, 1)
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{free_port()}", rank=0, world_size=1)
+    try:
+        good = dict(sh_degree=1, cameras=cameras[:1], rows=[8])
+        for changes, match in [
+            ({"cameras": cameras}, "cameras must be 1 PreparedCameras"),
+            ({"rows": [8, 0]}, "rows must be 1 counts"),
+            ({"rows": [-1]}, "rows must be 1 counts"),
+            ({"rows": [0]}, "no Gaussians"),
+            ({"rows": [7]}, "means"),
+            ({"sh_degree": 4}, "sh_degree"),
+            ({"sh_degree": 2}, "degree 2 needs 9"),
+        ]:
+            with pytest.raises(ValueError, match=match):
+                rasterize_shard(*scene, **{**good, **changes})
+        image, alpha, _ = rasterize_shard(*scene, **good)  # and one process is the whole scene
+        whole, whole_alpha, _ = rasterize(*scene, camera=cameras[0], sh_degree=1)
+        assert torch.equal(image, whole) and torch.equal(alpha, whole_alpha)
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.parametrize(
+    "spoil, error, messages",
+    [
+        ((1, "shape"), "ValueError", ["another process's arguments", "means must have shape"]),
+        ((0, "nan"), "NonFiniteError", ["means", "means"]),
+    ],
+    ids=["a-wrong-shape-on-one", "nan-on-one"],
+)
+def test_a_mistake_on_one_process_raises_on_every_one(tmp_path, spoil, error, messages):
+    """A wrong tensor or a NaN in one process's slice raises on both processes, which would
+    otherwise wait for each other in the exchange: the run stops, with the reason, not hangs."""
+    outs = run_ranks("sharded_render", 2, tmp_path, timeout=60.0, rows=(30, 30), spoil=spoil)
+    assert [out.get("error") for out in outs] == [error, error], outs
+    for out, message in zip(outs, messages):
+        assert message in out["message"], out["message"]
