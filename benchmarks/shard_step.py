@@ -5,7 +5,7 @@
 
 For each count N, every process holds the same N Gaussians (those of ``--ply``, a trained model,
 or the scene's points, resampled to N as ``benchmarks/profile_step.py`` does, SH degree 3), and
-process r renders training view (step x W + r) of the scene at each timed step. Three ways, each
+process r renders training view (step x W + r) of the scene at each timed step. Four ways, each
 timed per step with a synchronisation before and after (the median of ``--repeats`` steps after two
 untimed ones):
 
@@ -15,7 +15,8 @@ untimed ones):
   (59 floats a Gaussian; the densification statistics that a training sends with them are left
   out);
 - ``sharded``: :func:`cdcgs.train.shards.rasterize_shard` with the process's slice of the N
-  Gaussians (N / W each, in order), forward and backward.
+  Gaussians (N / W each, in order), forward and backward;
+- ``sharded, visible only``: the same with ``visible_only`` (each view sent only what it sees).
 
 What W processes would gain over one for the render and its exchange alone is the time one
 process takes for the step's W views (the sum of the processes' ``one view`` medians) over the
@@ -49,7 +50,7 @@ from cdcgs.train.distributed import Ranks
 from cdcgs.train.model import GaussianModel
 from cdcgs.train.shards import rasterize_shard
 
-WAYS = ("one_view", "data_parallel", "sharded")
+WAYS = ("one_view", "data_parallel", "sharded", "sharded_visible")
 
 
 def slices(n: int, world: int) -> list[int]:
@@ -58,7 +59,7 @@ def slices(n: int, world: int) -> list[int]:
 
 
 def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: list, n: int, repeats: int) -> dict:
-    """The three timings at ``n`` Gaussians (every process calls this with the same ``n``)."""
+    """The four timings at ``n`` Gaussians (every process calls this with the same ``n``)."""
     generator = torch.Generator(device=device).manual_seed(0)  # the same Gaussians on every process
     model = resampled(source, n, generator)
     params = {k: v.requires_grad_(True) for k, v in model.params.items()}
@@ -81,7 +82,7 @@ def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: 
         whole(step)
         ranks.reduce_gradients(params.values(), world)
 
-    def sharded(step: int) -> None:
+    def sharded(step: int, visible_only: bool = False) -> None:
         for p in mine.values():
             p.grad = None
         views = [cameras[(step * world + r) % len(cameras)] for r in range(world)]
@@ -95,11 +96,13 @@ def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: 
             sh_degree=model.sh_degree,
             cameras=views,
             rows=rows,
+            visible_only=visible_only,
         )
         (image * weight).sum().backward()
 
     row = {"gaussians": n, "slices": rows}
-    for name, call in zip(WAYS, (whole, data_parallel, sharded)):
+    ways = (whole, data_parallel, sharded, lambda step: sharded(step, visible_only=True))
+    for name, call in zip(WAYS, ways):
         steps = itertools.count()  # each round renders the next views
         row[f"{name}_ms"] = timed(
             device, lambda call=call, steps=steps: call(next(steps)), repeats, before=dist.barrier
@@ -118,13 +121,14 @@ def table(report: dict) -> str:
         f"{report['views']} views of {report['size']}; median of {report['repeats']} steps "
         "(`python benchmarks/shard_step.py`):",
         "",
-        "| Gaussians | one view | data parallel | speed-up | sharded | speed-up |",
-        "|---:|---:|---:|---:|---:|---:|",
+        "| Gaussians | one view | data parallel | speed-up | sharded | speed-up | sharded, visible only | speed-up |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in report["rows"]:
         lines.append(
             f"| {r['gaussians']:,} | {r['one_view_ms']:.2f} ms | {r['data_parallel_ms']:.2f} ms "
-            f"| {r['data_parallel_speedup']:.2f}× | {r['sharded_ms']:.2f} ms | {r['sharded_speedup']:.2f}× |"
+            f"| {r['data_parallel_speedup']:.2f}× | {r['sharded_ms']:.2f} ms | {r['sharded_speedup']:.2f}× "
+            f"| {r['sharded_visible_ms']:.2f} ms | {r['sharded_visible_speedup']:.2f}× |"
         )
     return "\n".join(lines) + "\n"
 

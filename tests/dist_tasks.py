@@ -347,7 +347,9 @@ def lpips_agreement(rank, world, scene, out):
         trainer_module.lpips_metric = real
 
 
-def sharded_render(rank, world, rows, seed=0, width=40, height=30, sh_degree=2, split=False, spoil=None):
+def sharded_render(
+    rank, world, rows, seed=0, width=40, height=30, sh_degree=2, split=False, spoil=None, visible_only=False
+):
     """rasterize_shard on this rank's slice of a random scene (``rows``: the slices' sizes), the
     view of camera ``rank`` of an orbit, and the backward pass of a fixed weighting of its image:
     (the image, the alpha, the intersection count, the slice's gradients); ``split``: the SH passed
@@ -380,6 +382,7 @@ def sharded_render(rank, world, rows, seed=0, width=40, height=30, sh_degree=2, 
             cameras=cameras,
             rows=list(rows),
             background=torch.tensor([0.2, 0.3, 0.4]),
+            visible_only=visible_only,
         )
         absgrad = info.retain_absgrad()  # AbsGS's sums over the whole scene's projection into this view
         ((image * weights[rank]).sum() + (alpha * weights[rank][..., 0]).sum()).backward()
@@ -390,6 +393,7 @@ def sharded_render(rank, world, rows, seed=0, width=40, height=30, sh_degree=2, 
             "alpha": alpha.detach(),
             "intersections": int(info.num_intersections),
             "absgrad": absgrad,
+            "received": int(info.means2d.shape[0]),
             "grads": grads,
         }
     finally:
@@ -397,8 +401,9 @@ def sharded_render(rank, world, rows, seed=0, width=40, height=30, sh_degree=2, 
 
 
 def sharded_scene(n, views, seed, width, height, sh_degree):
-    """Random Gaussians around the origin ([means, quats, scales, opacities, sh]), ``views``
-    prepared cameras on an orbit around them, and a random weight image per view."""
+    """Random Gaussians around the origin, some beyond the views' sides ([means, quats, scales,
+    opacities, sh]), ``views`` prepared cameras on an orbit around them, and a random weight image
+    per view."""
     import math
 
     import torch
@@ -407,7 +412,7 @@ def sharded_scene(n, views, seed, width, height, sh_degree):
     from cdcgs.render import prepare_camera
 
     g = torch.Generator().manual_seed(seed)
-    means = torch.rand(n, 3, generator=g) * 2 - 1
+    means = (torch.rand(n, 3, generator=g) * 2 - 1) * torch.tensor([3.0, 1.0, 1.0])  # some out of view
     quats = torch.randn(n, 4, generator=g)
     scales = torch.rand(n, 3, generator=g) * 0.15 + 0.02
     opacities = torch.rand(n, generator=g) * 0.9 + 0.05

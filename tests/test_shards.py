@@ -9,16 +9,20 @@ from cdcgs.render import rasterize
 
 
 @pytest.mark.parametrize(
-    "rows, split", [((70, 50), False), ((0, 90), True)], ids=["uneven", "an-empty-slice-sh-in-two"]
+    "rows, split, visible_only",
+    [((70, 50), False, False), ((0, 90), True, False), ((70, 50), False, True), ((0, 90), True, True)],
+    ids=["uneven", "an-empty-slice-sh-in-two", "uneven-visible-only", "an-empty-slice-visible-only"],
 )
-def test_a_sharded_render_is_the_whole_scenes_render(tmp_path, rows, split):
-    """Two processes (gloo, CPU), each with its slice (one empty), each rendering its view: the
-    image, the alpha and the intersection count are those of the whole scene's render of that
-    view, bit for bit, and each slice's gradients are the whole scene's gradient of the two
-    views' losses, restricted to the slice, and so are AbsGS's sums of each view (``split``: the SH as a trainer keeps them, degree 0
-    and the rest apart)."""
+def test_a_sharded_render_is_the_whole_scenes_render(tmp_path, rows, split, visible_only):
+    """Two processes (gloo, CPU), each with its slice (uneven, or one empty), each rendering its
+    view: the image, the alpha and the intersection count are those of the whole scene's render
+    of that view, bit for bit; each slice's gradients are the whole scene's gradient of the two
+    views' losses, restricted to the slice, and AbsGS's sums of each view are the whole scene's
+    of the Gaussians it received. ``split``: the SH as a trainer keeps them, degree 0 and the rest
+    apart; ``visible_only``: each view sent only what it sees (fewer Gaussians, the same render)."""
     world, seed, width, height, degree = 2, 3, 40, 30, 2
-    outs = run_ranks("sharded_render", world, tmp_path, rows=rows, seed=seed, width=width, height=height, split=split)
+    options = dict(rows=rows, seed=seed, width=width, height=height, split=split, visible_only=visible_only)
+    outs = run_ranks("sharded_render", world, tmp_path, **options)
     for rank, out in enumerate(outs):
         assert "result" in out, f"rank {rank}: {out.get('error')}: {out.get('message')}\n{out.get('traceback', '')}"
     scene, cameras, weights = sharded_scene(sum(rows), world, seed, width, height, degree)
@@ -32,12 +36,18 @@ def test_a_sharded_render_is_the_whole_scenes_render(tmp_path, rows, split):
         assert torch.equal(got["image"], image.detach()), view
         assert torch.equal(got["alpha"], alpha.detach()), view
         assert got["intersections"] == info.num_intersections > 0
-        absgrads.append(info.retain_absgrad())
+        # the Gaussians the view received: all, or those it sees and the first of each slice
+        received = torch.ones(sum(rows), dtype=torch.bool)
+        if visible_only:
+            received = (info.radii > 0).any(1)
+            received[[sum(rows[:r]) for r in range(world) if rows[r]]] = True
+            assert got["received"] == int(received.sum()) < sum(rows), view
+        absgrads.append((info.retain_absgrad(), received))
         total = total + (image * weights[view]).sum() + (alpha * weights[view][..., 0]).sum()
     total.backward()
-    for view, absgrad in enumerate(absgrads):  # AbsGS's sums of each view, over the whole scene
+    for view, (absgrad, received) in enumerate(absgrads):  # AbsGS's sums of each view, of what it received
         assert absgrad.abs().sum() > 0
-        torch.testing.assert_close(outs[view]["result"]["absgrad"], absgrad, rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(outs[view]["result"]["absgrad"], absgrad[received], rtol=1e-5, atol=1e-7)
     start = 0
     for rank, size in enumerate(rows):
         for name, mine, whole in zip(

@@ -18,11 +18,10 @@ at once:
    all-reduced.
 
 A step thus moves 12 floats a Gaussian forward and 10 back, against data parallelism's all-reduce
-of 59, and
-no process holds another's parameters, gradients or Adam moments. The views' renders read every
-projected Gaussian, visible or not (fixed sizes: one all-to-all with the slices' sizes); sending a
-view only the Gaussians it sees is the next step of the design (docs/distributed.md). The render
-reads its intersection count on the host, as :func:`cdcgs.render.rasterize` without ``capacity``.
+of 59, and no process holds another's parameters, gradients or Adam moments. By default every
+projected Gaussian goes to every view, visible or not (fixed sizes: one all-to-all with the
+slices' sizes); ``visible_only`` sends a view only the Gaussians it sees. The render reads its
+intersection count on the host, as :func:`cdcgs.render.rasterize` without ``capacity``.
 
 This module is the render; a training on shards (densification per slice, Adam per slice, the
 evaluation and the files gathered) builds on it and is not there yet.
@@ -93,6 +92,7 @@ def rasterize_shard(
     rows: list[int],
     background: torch.Tensor | None = None,
     antialiased: bool = False,
+    visible_only: bool = False,
     group=None,
 ) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
     """This process's view of the whole scene, rendered from the slices of all processes.
@@ -108,6 +108,10 @@ def rasterize_shard(
     with that camera returns them; its ``means2d`` etc. hold the whole scene's projection into
     this view. Gradients reach this process's slice from every process's view, so every process
     back-propagates through its image once (the backward pass holds the reverse exchange).
+    ``visible_only``: send each view only the Gaussians it sees (screen radius above 0), at the
+    cost of one more small exchange (the counts) and a read of them on the host; the image, alpha
+    and gradients are the same, and ``info``'s per-Gaussian tensors hold the Gaussians the view
+    sees and the first of each slice (so that no view receives none), in the slices' order.
 
     Unlike :func:`cdcgs.render.rasterize`: no ``render_depth`` and no ``capacity`` (the render reads
     its intersection count); ``background`` is not checked for NaN, and a background that requires
@@ -174,7 +178,18 @@ def rasterize_shard(
         if int(flags[-1]) != 0:
             raise ValueError("another process's arguments to rasterize_shard were wrong (its error says which)")
         sent = torch.cat(parts)  # [W n, FIELDS], view by view; it needs the slice's gradients even when empty
-        received = _Exchange.apply(sent, [n] * world, list(rows), group, DIFFERENTIABLE)
+        send_rows, receive_rows = [n] * world, list(rows)
+        if visible_only:  # the rows of each view with a screen radius, and how many each process gets
+            seen = (sent[:, FIELDS - 2 :] > 0).any(1).view(world, n)
+            seen[:, :1] = True  # and each slice's first Gaussian, so that no view receives nothing
+            counts = seen.sum(1)
+            seen = seen.view(-1)
+            incoming = torch.empty_like(counts)
+            dist.all_to_all_single(incoming, counts, group=group)
+            both = torch.cat([counts, incoming]).tolist()
+            send_rows, receive_rows = both[:world], both[world:]
+            sent = sent.index_select(0, seen.nonzero().squeeze(1))
+        received = _Exchange.apply(sent, send_rows, receive_rows, group, DIFFERENTIABLE)
 
         means2d, conics, colors = received[:, 0:2], received[:, 2:5], received[:, 5:8]
         composited, depths = received[:, 8], received[:, 9]
