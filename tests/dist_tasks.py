@@ -348,23 +348,38 @@ def lpips_agreement(rank, world, scene, out):
 
 
 def sharded_render(
-    rank, world, rows, seed=0, width=40, height=30, sh_degree=2, split=False, spoil=None, visible_only=False
+    rank,
+    world,
+    rows,
+    seed=0,
+    width=40,
+    height=30,
+    sh_degree=2,
+    split=False,
+    spoil=None,
+    visible_only=False,
+    backend="gloo",
 ):
     """rasterize_shard on this rank's slice of a random scene (``rows``: the slices' sizes), the
     view of camera ``rank`` of an orbit, and the backward pass of a fixed weighting of its image:
     (the image, the alpha, the intersection count, the slice's gradients); ``split``: the SH passed
     as ``sh`` (degree 0) and ``sh_rest``, the gradient of the two concatenated; ``spoil``: (rank,
-    "shape" or "nan"): that rank passes a means tensor of the wrong shape, or a NaN in it."""
+    "shape" or "nan"): that rank passes a means tensor of the wrong shape, or a NaN in it;
+    ``backend`` "nccl": on GPU ``rank`` (the results come back on the CPU)."""
     import torch
     import torch.distributed as dist
 
     from cdcgs.train.shards import rasterize_shard
 
-    dist.init_process_group("gloo", rank=rank, world_size=world)
+    device = torch.device("cpu")
+    if backend == "nccl":
+        device = torch.device("cuda", rank)
+        torch.cuda.set_device(device)
+    dist.init_process_group(backend, rank=rank, world_size=world)
     try:
         scene, cameras, weights = sharded_scene(sum(rows), world, seed, width, height, sh_degree)
         start = sum(rows[:rank])
-        mine = [t[start : start + rows[rank]].clone().requires_grad_(True) for t in scene]
+        mine = [t[start : start + rows[rank]].to(device).clone().requires_grad_(True) for t in scene]
         if spoil is not None and spoil[0] == rank:
             if spoil[1] == "shape":
                 mine[0] = mine[0][1:]
@@ -381,20 +396,21 @@ def sharded_render(
             sh_degree=sh_degree,
             cameras=cameras,
             rows=list(rows),
-            background=torch.tensor([0.2, 0.3, 0.4]),
+            background=torch.tensor([0.2, 0.3, 0.4], device=device),
             visible_only=visible_only,
         )
         absgrad = info.retain_absgrad()  # AbsGS's sums over the whole scene's projection into this view
-        ((image * weights[rank]).sum() + (alpha * weights[rank][..., 0]).sum()).backward()
+        weight = weights[rank].to(device)
+        ((image * weight).sum() + (alpha * weight[..., 0]).sum()).backward()
         grads = [t.grad for t in mine[:4]]
         grads.append(torch.cat([sh["sh"].grad, sh["sh_rest"].grad], 1) if split else mine[4].grad)
         return {
-            "image": image.detach(),
-            "alpha": alpha.detach(),
+            "image": image.detach().cpu(),
+            "alpha": alpha.detach().cpu(),
             "intersections": int(info.num_intersections),
-            "absgrad": absgrad,
+            "absgrad": absgrad.cpu(),
             "received": int(info.means2d.shape[0]),
-            "grads": grads,
+            "grads": [g.cpu() for g in grads],
         }
     finally:
         dist.destroy_process_group()

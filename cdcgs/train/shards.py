@@ -8,20 +8,23 @@ at once:
 
 1. each process projects its slice into every process's view and colours it from that view
    (the projection and the SH evaluation of :func:`cdcgs.render.rasterize`);
-2. one all-to-all sends each view's part to the process that renders the view: per Gaussian its 2D
-   mean, conic, colour, opacity and depth (10 floats) and its screen radii (2, exact as floats);
+2. one group of point-to-point transfers sends each view's part to the process that renders the
+   view, field by field as the projection wrote it (no packing): per Gaussian its 2D mean, conic,
+   colour, opacity and depth (10 floats) and its screen radii (2 int32), with each process's
+   flags of wrong or non-finite inputs;
 3. that process bins, sorts and blends the whole scene's projection into its view, as one process
    rendering every Gaussian would, Gaussian for Gaussian in the same order;
-4. in the backward pass the gradients of those 10 floats go back by the reverse all-to-all, and
+4. in the backward pass the gradients of those 10 floats go back the reverse way, and
    each process finishes the projection's and the SH evaluation's adjoints of its own slice, for
    every view: its parameters' gradients are the step's (the sum over the views), with nothing
    all-reduced.
 
 A step thus moves 12 floats a Gaussian forward and 10 back, against data parallelism's all-reduce
 of 59, and no process holds another's parameters, gradients or Adam moments. By default every
-projected Gaussian goes to every view, visible or not (fixed sizes: one all-to-all with the
-slices' sizes); ``visible_only`` sends a view only the Gaussians it sees. The render reads its
-intersection count on the host, as :func:`cdcgs.render.rasterize` without ``capacity``.
+projected Gaussian goes to every view, visible or not (fixed sizes, known to every process);
+``visible_only`` sends a view only the Gaussians it sees. The render reads its intersection count
+on the host, as :func:`cdcgs.render.rasterize` without ``capacity``, and every process's flags with
+it: nothing else waits for the device.
 
 This module is the render; a training on shards (densification per slice, Adam per slice, the
 evaluation and the files gathered) builds on it and is not there yet.
@@ -32,7 +35,7 @@ from __future__ import annotations
 import torch
 import torch.distributed as dist
 
-from .._interop import warp_scope
+from .._interop import torch_tensor, warp_scope
 from ..kernels._constants import MAX_SH_DEGREE
 from ..render import (
     PreparedCamera,
@@ -40,43 +43,95 @@ from ..render import (
     _bin,
     _Blend,
     _check_tensor,
-    _count_reader,
     _info,
     _Project,
+    _raise_nonfinite,
     _ShColor,
 )
 
 __all__ = ["FIELDS", "rasterize_shard"]
 
-# Floats sent per Gaussian and view: 2D mean 2, conic 3, colour 3, opacity 1, depth 1 (the
-# DIFFERENTIABLE ones, whose gradients come back), then the screen radii 2.
-FIELDS = 12
-DIFFERENTIABLE = 10
+# What a view receives of each Gaussian: 2D mean, conic, colour, opacity and depth (the
+# differentiable fields, whose gradients go back), then the screen radii (int32).
+FIELDS = (("means2d", 2), ("conics", 3), ("colors", 3), ("opacities", 1), ("depths", 1), ("radii", 2))
+DIFFERENTIABLE = 5
 _NAMES = ("means", "quats", "scales", "opacities", "sh")
+_WRONG = len(_NAMES)  # the flag of a process whose arguments were wrong, after the non-finite ones
+
+
+def _peer(group, rank: int) -> int:
+    return rank if group is None else dist.get_global_rank(group, rank)
+
+
+def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]], group) -> None:
+    """Send ``outgoing[r]`` (a list of tensors) to process r and fill ``incoming[r]`` from it, for
+    every r, as one group of point-to-point transfers: each tensor goes as it lies, with no packing
+    (this process's own part is copied). Tensors with no elements are skipped on both sides; the
+    processes agree on every size."""
+    rank = dist.get_rank(group)
+    ops = []
+    for r, (sent, received) in enumerate(zip(outgoing, incoming)):
+        if r == rank:
+            for mine, into in zip(sent, received):
+                into.copy_(mine)
+            continue
+        peer = _peer(group, r)
+        ops += [dist.P2POp(dist.isend, t, peer, group, tag) for tag, t in enumerate(sent) if t.numel()]
+        ops += [dist.P2POp(dist.irecv, t, peer, group, tag) for tag, t in enumerate(received) if t.numel()]
+    if ops:
+        for work in dist.batch_isend_irecv(ops):
+            work.wait()  # on NCCL: the current stream waits, not the host
 
 
 class _Exchange(torch.autograd.Function):
-    """An all-to-all of rows, and of their gradients back."""
+    """Each view's fields to the process that renders it, field by field; their gradients back.
+
+    Inputs: ``layout`` (send_rows, receive_rows, group), then the fields of view 0 (FIELDS, in
+    order), of view 1, ...; and this process's flags, which every other process receives beside
+    the fields. Returns the received fields (each [sum(receive_rows), width], in process order)
+    and the flags of every process [W, F]."""
 
     @staticmethod
-    def forward(ctx, sent, send_rows: list[int], receive_rows: list[int], group, differentiable: int):
-        received = sent.new_empty(sum(receive_rows), sent.shape[1])
-        dist.all_to_all_single(received, sent.contiguous(), receive_rows, send_rows, group=group)
-        ctx.rows = (send_rows, receive_rows)
-        ctx.group = group
-        ctx.differentiable = differentiable
-        return received
+    def forward(ctx, layout, flags, *fields):
+        send_rows, receive_rows, group = layout
+        world = len(send_rows)
+        per_view = [fields[v * len(FIELDS) : (v + 1) * len(FIELDS)] for v in range(world)]
+        device = flags.device
+        received = [
+            torch.empty(sum(receive_rows), width, dtype=sample.dtype, device=device).squeeze(-1)
+            for (_, width), sample in zip(FIELDS, per_view[0])
+        ]
+        every_flags = flags.new_empty(world, flags.shape[0])
+        offsets = [sum(receive_rows[:r]) for r in range(world)]
+        incoming = [
+            [t[offsets[r] : offsets[r] + receive_rows[r]] for t in received] + [every_flags[r]] for r in range(world)
+        ]
+        _swap([[*per_view[r], flags] for r in range(world)], incoming, group)
+        ctx.layout = layout
+        ctx.device = device
+        ctx.mark_non_differentiable(received[-1], every_flags)
+        return (*received, every_flags)
 
     @staticmethod
-    def backward(ctx, grad):
-        """Only the first ``differentiable`` columns' gradients travel; the others' are zeros."""
-        send_rows, receive_rows = ctx.rows
-        columns = ctx.differentiable
-        back = grad.new_zeros(sum(send_rows), grad.shape[1])
-        moved = grad.new_empty(sum(send_rows), columns)
-        dist.all_to_all_single(moved, grad[:, :columns].contiguous(), send_rows, receive_rows, group=ctx.group)
-        back[:, :columns] = moved
-        return back, None, None, None, None
+    def backward(ctx, *grads):
+        """The differentiable fields' gradients travel back; the radii's and flags' are none."""
+        send_rows, receive_rows, group = ctx.layout
+        world = len(send_rows)
+        offsets = [sum(receive_rows[:r]) for r in range(world)]
+        device = ctx.device
+        grads = [
+            torch.zeros(sum(receive_rows), width, device=device).squeeze(-1) if g is None else g.contiguous()
+            for g, (_, width) in zip(grads[:DIFFERENTIABLE], FIELDS)
+        ]
+        back = [
+            [torch.empty(send_rows[v], width, device=device).squeeze(-1) for _, width in FIELDS[:DIFFERENTIABLE]]
+            for v in range(world)
+        ]
+        _swap([[g[offsets[r] : offsets[r] + receive_rows[r]] for g in grads] for r in range(world)], back, group)
+        out = [None, None]
+        for v in range(world):
+            out += back[v] + [None]  # no gradient for the radii
+        return tuple(out)
 
 
 def rasterize_shard(
@@ -116,8 +171,9 @@ def rasterize_shard(
     Unlike :func:`cdcgs.render.rasterize`: no ``render_depth`` and no ``capacity`` (the render reads
     its intersection count); ``background`` is not checked for NaN, and a background that requires
     grad gets this view's gradient alone. A wrong tensor on one process raises ValueError on every
-    process (naming it on that one) before the exchange; NaN or inf in any slice raises
-    NonFiniteError on every process.
+    process (naming it on that one): that process takes its part in the exchange with zeros and
+    raises after it, the others at their count read, so that none is left waiting in an exchange.
+    NaN or inf in any slice raises NonFiniteError on every process, at the same read.
     """
     rank, world = dist.get_rank(group), dist.get_world_size(group)
     if len(cameras) != world or not all(isinstance(c, PreparedCamera) for c in cameras):
@@ -155,50 +211,46 @@ def rasterize_shard(
         cuda = dist.get_backend(group) == "nccl"
         device = torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
     camera = cameras[rank]
-    # This slice's flags of non-finite inputs, and one for a process's wrong arguments: reduced over
-    # the processes before the exchange, so that all raise together or none does.
+    # This slice's flags of non-finite inputs, and one for this process's wrong arguments: every
+    # process receives every other's with the fields, and all raise together at the render's count
+    # read (or at the exchange of the counts), so none is left waiting in an exchange.
     flags = torch.zeros(len(_NAMES) + 1, dtype=torch.int32, device=device)
     nonfinite = flags[: len(_NAMES)]
     with warp_scope(device):
-        parts = []
+        views = []  # per view: the fields of FIELDS, of this slice
         if wrong is None:
             for view in cameras:
                 means2d, conics, depths, composited, radii = _Project.apply(
                     means, quats, scales, opacities, view, antialiased, nonfinite
                 )
                 colors = _ShColor.apply(means, sh, sh_rest, sh_degree, view, radii, nonfinite[len(_NAMES) - 1 :])
-                parts.append(
-                    torch.cat([means2d, conics, colors, composited[:, None], depths[:, None], radii.float()], 1)
-                )
-        else:
-            flags[-1] = 1
-        dist.all_reduce(flags, op=dist.ReduceOp.MAX, group=group)
-        if wrong is not None:
-            raise wrong
-        if int(flags[-1]) != 0:
-            raise ValueError("another process's arguments to rasterize_shard were wrong (its error says which)")
-        sent = torch.cat(parts)  # [W n, FIELDS], view by view; it needs the slice's gradients even when empty
+                views.append([means2d, conics, colors, composited, depths, radii])
+        else:  # zeros of the right sizes take this process's part in the exchange
+            flags[_WRONG] = 1
+            views = [[_zeros(n, width, device, name) for name, width in FIELDS] for _ in cameras]
         send_rows, receive_rows = [n] * world, list(rows)
         if visible_only:  # the rows of each view with a screen radius, and how many each process gets
-            seen = (sent[:, FIELDS - 2 :] > 0).any(1).view(world, n)
-            seen[:, :1] = True  # and each slice's first Gaussian, so that no view receives nothing
-            counts = seen.sum(1)
-            seen = seen.view(-1)
-            incoming = torch.empty_like(counts)
-            dist.all_to_all_single(incoming, counts, group=group)
-            both = torch.cat([counts, incoming]).tolist()
-            send_rows, receive_rows = both[:world], both[world:]
-            sent = sent.index_select(0, seen.nonzero().squeeze(1))
-        received = _Exchange.apply(sent, send_rows, receive_rows, group, DIFFERENTIABLE)
-
-        means2d, conics, colors = received[:, 0:2], received[:, 2:5], received[:, 5:8]
-        composited, depths = received[:, 8], received[:, 9]
-        radii = received[:, 10:12].detach().to(torch.int32)
-        means2d, conics, colors = (t.contiguous() for t in (means2d, conics, colors))
-        composited, depths = composited.contiguous(), depths.contiguous()
-        bins = _bin(
-            means2d, radii, depths, conics, composited, camera.width, camera.height, _count_reader(nonfinite, _NAMES)
+            seen = [(fields[-1] > 0).any(1) for fields in views]
+            for each in seen:
+                each[:1] = True  # and each slice's first Gaussian, so that no view receives nothing
+            counts = torch.stack([each.sum() for each in seen]).to(torch.int32)
+            outgoing = [[torch.cat([counts[r : r + 1], flags])] for r in range(world)]
+            incoming = torch.empty(world, 1 + flags.shape[0], dtype=torch.int32, device=device)
+            _swap(outgoing, [[incoming[r]] for r in range(world)], group)
+            # the step's one read of the counts, both ways, and of every process's flags
+            values = torch.cat([counts, incoming.amax(0)[1:], incoming[:, 0]]).tolist()
+            _raise_flagged(wrong, values[world:-world])
+            send_rows, receive_rows = values[:world], values[-world:]
+            picked = [each.nonzero().squeeze(1) for each in seen]
+            views = [[field.index_select(0, keep) for field in fields] for fields, keep in zip(views, picked)]
+        *received, every_flags = _Exchange.apply(
+            (send_rows, receive_rows, group), flags, *(field for fields in views for field in fields)
         )
+        if wrong is not None:
+            raise wrong
+        flags = every_flags.amax(0)
+        means2d, conics, colors, composited, depths, radii = received
+        bins = _bin(means2d, radii, depths, conics, composited, camera.width, camera.height, _reader(flags))
         absgrad_request = {}  # info.retain_absgrad() puts the AbsGS sums' tensor here for the backward pass
         image, transmittance, _depth_sum, last = _Blend.apply(
             means2d, conics, colors, composited, depths, background, bins, camera.width, camera.height, absgrad_request
@@ -206,3 +258,30 @@ def rasterize_shard(
     projection = (means2d, conics, depths, composited, radii)
     info = _info(camera.width, camera.height, projection, bins, colors, last, transmittance, None, absgrad_request)
     return image, 1.0 - transmittance, info
+
+
+def _zeros(rows: int, width: int, device: torch.device, name: str) -> torch.Tensor:
+    dtype = torch.int32 if name == "radii" else torch.float32
+    return torch.zeros(rows, width, dtype=dtype, device=device).squeeze(-1)
+
+
+def _raise_flagged(wrong: ValueError | None, flags: list[int]) -> None:
+    """This process's own error, else one naming another's wrong arguments or a non-finite input
+    (the flags of every process combined)."""
+    if wrong is not None:
+        raise wrong
+    if flags[_WRONG]:
+        raise ValueError("another process's arguments to rasterize_shard were wrong (its error says which)")
+    _raise_nonfinite(_NAMES, flags[: len(_NAMES)])
+
+
+def _reader(flags: torch.Tensor):
+    """``read_count`` for the binning: the intersection count and every process's flags, in the
+    render's one host read."""
+
+    def read_count(offsets) -> int:
+        values = torch.cat([flags, torch_tensor(offsets)[-1:]]).tolist()
+        _raise_flagged(None, values[:-1])
+        return values[-1]
+
+    return read_count
