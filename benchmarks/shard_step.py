@@ -18,6 +18,13 @@ untimed ones):
   Gaussians (N / W each, in order), forward and backward;
 - ``sharded, visible only``: the same with ``visible_only`` (each view sent only what it sees).
 
+On CUDA the first three are also timed as training replays its steps: captured once as a CUDA
+graph (each process's views chosen on the device before each replay, the pairs binned into slots,
+``capacity``, sized from every view's count with a margin, nothing read on the host) and replayed:
+``one view, replayed``, ``data parallel, replayed`` (the all-reduce in the graph) and ``sharded,
+replayed`` (the transfers in the graph); their speed-ups are over the sum of the processes' replayed
+one-view medians, in a second table.
+
 What W processes would gain over one for the render and its exchange alone is the time one
 process takes for the step's W views (the sum of the processes' ``one view`` medians) over the
 step: printed as each way's "speed-up" (Adam, the loss and the host's other work per step are not
@@ -30,12 +37,14 @@ puts process i on GPU i (NCCL), ``cpu`` runs on the CPU (gloo).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import os
 import sys
 
 import torch
 import torch.distributed as dist
+import warp as wp
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
@@ -44,13 +53,67 @@ sys.path.insert(0, os.path.dirname(HERE))
 from allreduce import join, launch_options, publish, report_of, timed
 from profile_step import resampled
 
+from cdcgs._interop import launch, warp_scope, wp_arg
 from cdcgs.io import load_scene, read_ply
+from cdcgs.kernels import Camera
+from cdcgs.kernels._lookahead import select_camera_at_kernel
 from cdcgs.render import prepare_camera, rasterize
 from cdcgs.train.distributed import Ranks
 from cdcgs.train.model import GaussianModel
 from cdcgs.train.shards import rasterize_shard
 
 WAYS = ("one_view", "data_parallel", "sharded", "sharded_visible")
+REPLAYED = ("one_view_replayed", "data_parallel_replayed", "sharded_replayed")
+MARGIN = 1.25  # the slots of a replayed render: the most pairs of any view, times this
+
+
+class Replay:
+    """Steps captured as CUDA graphs: the step's W views chosen on the device from ``where``
+    (written before each replay), as a training's replayed step chooses its view."""
+
+    def __init__(self, device: torch.device, cameras: list, world: int):
+        self.device = device
+        self.table = wp.array([c.camera for c in cameras], dtype=Camera, device=wp.device_from_torch(device))
+        self.slots = [wp.empty(1, dtype=Camera, device=self.table.device) for _ in range(world)]
+        self.views = [dataclasses.replace(cameras[0], on_device=slot) for slot in self.slots]
+        self.where = torch.zeros(world, dtype=torch.int32, device=device)
+        # the stream of the warm-up and the capture, where the replayed steps' leaves are made too
+        # (autograd accumulates a leaf's gradient in step with the stream it was made on)
+        self.stream = torch.cuda.Stream(device)
+
+    def capture(self, body, reset) -> torch.cuda.CUDAGraph:
+        """``body`` run twice on a side stream (as torch asks of a warm-up before a capture), then
+        captured; ``reset()`` before each (the gradients set to None)."""
+        side = self.stream
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                reset()
+                self._select()
+                body()
+        torch.cuda.synchronize(self.device)
+        reset()
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, stream=side, capture_error_mode="thread_local"):
+            stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
+            wp.capture_begin(stream=stream, external=True)
+            try:
+                self._select()
+                body()
+            finally:
+                wp.capture_end(stream=stream)
+        return graph
+
+    def _select(self) -> None:
+        with warp_scope(self.device):
+            for entry, slot in enumerate(self.slots):
+                launch(
+                    select_camera_at_kernel, 1, inputs=[self.table, wp_arg(self.where, wp.int32), entry], outputs=[slot]
+                )
+
+    def replay(self, graph, views: list[int]) -> None:
+        self.where.copy_(torch.tensor(views, dtype=torch.int32))
+        graph.replay()
 
 
 def slices(n: int, world: int) -> list[int]:
@@ -108,10 +171,80 @@ def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: 
             device, lambda call=call, steps=steps: call(next(steps)), repeats, before=dist.barrier
         )
     # one process rendering the step's W views: the sum of the processes' own views' medians
-    alone = torch.tensor([row["one_view_ms"]], dtype=torch.float64, device=device)
-    row["views_alone_ms"] = float(ranks.all_reduce_(alone)[0])
+    row["views_alone_ms"] = sum_over(ranks, device, row["one_view_ms"])
     for name in WAYS[1:]:
         row[f"{name}_speedup"] = row["views_alone_ms"] / row[f"{name}_ms"]
+    if device.type == "cuda":
+        row.update(measure_replayed(ranks, device, model, mine, rows, cameras, weight, repeats))
+    return row
+
+
+def sum_over(ranks: Ranks, device: torch.device, value: float) -> float:
+    total = torch.tensor([value], dtype=torch.float64, device=device)
+    return float(ranks.all_reduce_(total)[0])
+
+
+def measure_replayed(ranks, device, model, mine, rows, cameras, weight, repeats) -> dict:
+    """The replayed ways (CUDA): each captured once, then timed as the eager ones."""
+    world, rank = ranks.world, ranks.rank
+    with torch.no_grad():  # the slots: every view's pairs, read once here
+        most = max(rasterize(**model.render_args(), camera=c)[2].num_intersections for c in cameras)
+    capacity = int(most * MARGIN) + 1
+    replay = Replay(device, cameras, world)
+    with torch.cuda.stream(replay.stream):  # the leaves of the replayed steps, made on its stream
+        torch.cuda.current_stream(device).wait_stream(torch.cuda.default_stream(device))
+        model.params.update({k: v.detach().clone().requires_grad_(True) for k, v in model.params.items()})
+        mine = {k: v.detach().clone().requires_grad_(True) for k, v in mine.items()}
+    params = model.params
+    infos = {}
+
+    def whole(name: str, reduce: bool):
+        def body():
+            image, _, infos[name] = rasterize(**model.render_args(), camera=replay.views[rank], capacity=capacity)
+            (image * weight).sum().backward()
+            if reduce:
+                ranks.reduce_gradients(params.values(), world)
+
+        return body
+
+    def sharded():
+        image, _, infos["sharded"] = rasterize_shard(
+            mine["means"],
+            mine["quats"],
+            mine["log_scales"].exp(),
+            torch.sigmoid(mine["opacity_logits"]),
+            mine["sh_dc"],
+            sh_rest=mine["sh_rest"],
+            sh_degree=model.sh_degree,
+            cameras=replay.views,
+            rows=rows,
+            capacity=capacity,
+        )
+        (image * weight).sum().backward()
+
+    row = {"capacity": capacity}
+    bodies = (whole("one_view", False), whole("data_parallel", True), sharded)
+
+    def reset():
+        for p in (*params.values(), *mine.values()):
+            p.grad = None
+
+    for name, body in zip(REPLAYED, bodies):
+        graph = replay.capture(body, reset)
+        steps = itertools.count()
+
+        def step(graph=graph, steps=steps):
+            first = next(steps) * world
+            replay.replay(graph, [(first + r) % len(cameras) for r in range(world)])
+
+        row[f"{name}_ms"] = timed(device, step, repeats, before=dist.barrier)
+        for info in infos.values():
+            info.check()  # the last replay's pairs fitted its slots, and nothing was NaN
+        infos.clear()
+        del graph
+    row["views_alone_replayed_ms"] = sum_over(ranks, device, row["one_view_replayed_ms"])
+    for name in REPLAYED[1:]:
+        row[f"{name}_speedup"] = row["views_alone_replayed_ms"] / row[f"{name}_ms"]
     return row
 
 
@@ -130,6 +263,20 @@ def table(report: dict) -> str:
             f"| {r['data_parallel_speedup']:.2f}× | {r['sharded_ms']:.2f} ms | {r['sharded_speedup']:.2f}× "
             f"| {r['sharded_visible_ms']:.2f} ms | {r['sharded_visible_speedup']:.2f}× |"
         )
+    if all("one_view_replayed_ms" in r for r in report["rows"]):
+        lines += [
+            "",
+            f"Replayed as CUDA graphs (slots: the most pairs of any view × {MARGIN}):",
+            "",
+            "| Gaussians | one view | data parallel | speed-up | sharded | speed-up |",
+            "|---:|---:|---:|---:|---:|---:|",
+        ]
+        for r in report["rows"]:
+            lines.append(
+                f"| {r['gaussians']:,} | {r['one_view_replayed_ms']:.2f} ms | {r['data_parallel_replayed_ms']:.2f} ms "
+                f"| {r['data_parallel_replayed_speedup']:.2f}× | {r['sharded_replayed_ms']:.2f} ms "
+                f"| {r['sharded_replayed_speedup']:.2f}× |"
+            )
     return "\n".join(lines) + "\n"
 
 

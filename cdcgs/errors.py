@@ -3,11 +3,12 @@ option (:class:`OptionError`). The command line reports both in one line and exi
 other exception is a defect and keeps its traceback. :class:`NonFiniteError` is the render's
 refusal of NaN or infinite inputs (a ValueError, as before), which the trainer turns into a report
 of where the run's numbers went wrong. :class:`CapacityError` says that a render binned into a
-fixed number of slots (``rasterize(capacity=...)``) needed more."""
+fixed number of slots (``rasterize(capacity=...)``) needed more. :class:`PeerError` is what the
+other processes of a sharded render raise when one process's arguments were wrong."""
 
 import os
 
-__all__ = ["CapacityError", "InputError", "NonFiniteError", "OptionError"]
+__all__ = ["CapacityError", "InputError", "NonFiniteError", "OptionError", "PeerError"]
 
 
 class InputError(ValueError):
@@ -33,6 +34,17 @@ class NonFiniteError(ValueError):
     def __init__(self, name: str):
         self.name = name
         super().__init__(f"{name} has non-finite values (NaN or inf)")
+
+
+class PeerError(ValueError):
+    """Another process of a sharded render (:func:`cdcgs.train.shards.rasterize_shard`) was given
+    wrong arguments; that process's own error names them. ``FLAG``: the name of its device flag
+    among the render's finiteness flags, which carry it."""
+
+    FLAG = "another process's arguments"
+
+    def __init__(self):
+        super().__init__("another process's arguments to rasterize_shard were wrong (its error says which)")
 
 
 class CapacityError(RuntimeError):

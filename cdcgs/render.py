@@ -23,7 +23,7 @@ from ._interop import torch_tensor as _torch
 from ._interop import warp_scope as _warp_scope
 from ._interop import wp_arg as _arg
 from ._interop import wp_array as _wp
-from .errors import CapacityError, NonFiniteError
+from .errors import CapacityError, NonFiniteError, PeerError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
 from .kernels._statistics import accumulate_statistics_kernel
@@ -119,8 +119,9 @@ class RasterizeInfo:
         means2d_absgrad: [N, 2] sum over pixels of |d loss / d means2d| per pixel (AbsGS), filled
             by the backward pass when :meth:`retain_absgrad` asked for it before; else None.
         pending: for a render with ``capacity``, what it did not read on the host: the [K + 2]
-            int32 device tensor of the inputs' non-finite flags, then whether the pairs overflowed
-            the slots, then their count (:meth:`check` reads it); None otherwise, where the render
+            int32 device tensor of the inputs' non-finite flags (a sharded render's also the flag
+            of another process's wrong arguments), then whether the pairs overflowed the slots,
+            then their count (:meth:`check` reads it); None otherwise, where the render
             read its count and checked its inputs itself. ``num_intersections`` is then the
             capacity, and ``sorted_gauss_ids`` ends with empty slots (-1) that belong to no tile.
     """
@@ -145,6 +146,9 @@ class RasterizeInfo:
     pending: torch.Tensor | None = None
     _pending_names: tuple = field(default=(), repr=False)
     _pending_stream: object = field(default=None, repr=False)  # the CUDA stream the render queued on
+    # an error the render put off until check(): a sharded render's process with wrong arguments
+    # (cdcgs.train.shards), which took its part in the exchanges instead of leaving the others waiting
+    _deferred: Exception | None = field(default=None, repr=False)
 
     def check(self) -> int:
         """The view's number of (tile, Gaussian) pairs, read from the device (one synchronisation).
@@ -152,12 +156,19 @@ class RasterizeInfo:
         For a render with ``capacity`` it also raises what that render did not: NonFiniteError
         naming an input that held NaN or inf, then CapacityError when the pairs overflowed the
         slots (the image and the gradients are then wrong). Without ``capacity``: the count, which
-        the render read already."""
+        the render read already. A sharded render with ``capacity``
+        (:func:`cdcgs.train.shards.rasterize_shard`) raises first this process's own wrong
+        argument, which it went on past with zeros, and PeerError for another process's; its
+        CapacityError is this process's view's alone."""
         if self.pending is None:
+            if self._deferred is not None:
+                raise self._deferred
             return self.num_intersections
         stream = self._pending_stream
         with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
             values = self.pending.tolist()  # on the render's stream, after its work, whatever is current now
+        if self._deferred is not None:  # raised after the read: the render's transfers are done by now
+            raise self._deferred
         overflowed, count = _pending_outcome(self._pending_names, values)
         if overflowed:
             raise CapacityError(count, self.num_intersections)
@@ -166,7 +177,11 @@ class RasterizeInfo:
     @property
     def pending_flags(self) -> tuple[torch.Tensor, tuple] | None:
         """(``pending``, the names of its finiteness flags) for :func:`any_overflowed`: what a
-        render with ``capacity`` left on the device, without the rest of the info. None without."""
+        render with ``capacity`` left on the device, without the rest of the info. None without.
+        A sharded render's process whose own arguments were wrong has no flags to give: its error
+        is raised here (call :meth:`check` for it after the backward pass)."""
+        if self._deferred is not None:
+            raise self._deferred
         return None if self.pending is None else (self.pending, self._pending_names)
 
     @property
@@ -344,10 +359,11 @@ def _pending_outcome(names, values) -> tuple[bool, int]:
 
 
 def _raise_nonfinite(names, flags) -> None:
-    """NonFiniteError for the first of ``names`` whose flag (read from the device) is set."""
+    """NonFiniteError for the first of ``names`` whose flag (read from the device) is set
+    (PeerError for a sharded render's flag of another process's wrong arguments)."""
     for name, bad in zip(names, flags):
         if bad:
-            raise NonFiniteError(name)
+            raise PeerError() if name == PeerError.FLAG else NonFiniteError(name)
 
 
 class _Project(torch.autograd.Function):

@@ -359,13 +359,17 @@ def sharded_render(
     spoil=None,
     visible_only=False,
     backend="gloo",
+    default_float64=False,
+    capacity=None,
 ):
     """rasterize_shard on this rank's slice of a random scene (``rows``: the slices' sizes), the
     view of camera ``rank`` of an orbit, and the backward pass of a fixed weighting of its image:
     (the image, the alpha, the intersection count, the slice's gradients); ``split``: the SH passed
     as ``sh`` (degree 0) and ``sh_rest``, the gradient of the two concatenated; ``spoil``: (rank,
     "shape" or "nan"): that rank passes a means tensor of the wrong shape, or a NaN in it;
-    ``backend`` "nccl": on GPU ``rank`` (the results come back on the CPU)."""
+    ``backend`` "nccl": on GPU ``rank`` (the results come back on the CPU); ``default_float64``:
+    torch's default dtype float64 in this process (the scene float32 still); ``capacity``: slots
+    for the view's pairs, nothing read back, ``info.check()`` after the backward pass."""
     import torch
     import torch.distributed as dist
 
@@ -378,6 +382,8 @@ def sharded_render(
     dist.init_process_group(backend, rank=rank, world_size=world)
     try:
         scene, cameras, weights = sharded_scene(sum(rows), world, seed, width, height, sh_degree)
+        if default_float64:
+            torch.set_default_dtype(torch.float64)
         start = sum(rows[:rank])
         mine = [t[start : start + rows[rank]].to(device).clone().requires_grad_(True) for t in scene]
         if spoil is not None and spoil[0] == rank:
@@ -396,18 +402,20 @@ def sharded_render(
             sh_degree=sh_degree,
             cameras=cameras,
             rows=list(rows),
-            background=torch.tensor([0.2, 0.3, 0.4], device=device),
+            background=torch.tensor([0.2, 0.3, 0.4], dtype=torch.float32, device=device),
             visible_only=visible_only,
+            capacity=capacity,
         )
         absgrad = info.retain_absgrad()  # AbsGS's sums over the whole scene's projection into this view
         weight = weights[rank].to(device)
         ((image * weight).sum() + (alpha * weight[..., 0]).sum()).backward()
+        intersections = info.check()  # with capacity: what the render did not read, raised here
         grads = [t.grad for t in mine[:4]]
         grads.append(torch.cat([sh["sh"].grad, sh["sh_rest"].grad], 1) if split else mine[4].grad)
         return {
             "image": image.detach().cpu(),
             "alpha": alpha.detach().cpu(),
-            "intersections": int(info.num_intersections),
+            "intersections": intersections,
             "absgrad": absgrad.cpu(),
             "received": int(info.means2d.shape[0]),
             "grads": [g.cpu() for g in grads],

@@ -23,6 +23,18 @@ def test_a_sharded_render_is_the_whole_scenes_render(tmp_path, rows, split, visi
     check_sharded_render(tmp_path, rows, split, visible_only, "gloo", torch.device("cpu"))
 
 
+def test_a_sharded_render_into_slots_is_the_whole_scenes_render(tmp_path):
+    """With ``capacity`` (nothing read on the host, as a captured step needs) the same render,
+    and ``info.check()`` gives the view's count."""
+    check_sharded_render(tmp_path, (70, 50), True, False, "gloo", torch.device("cpu"), capacity=4096)
+
+
+def test_a_sharded_render_keeps_float32_under_a_float64_default(tmp_path):
+    """The processes' default dtype float64 (the tensors float32, as the render takes them): the
+    gradients that come back are float32 still, and the same."""
+    check_sharded_render(tmp_path, (70, 50), True, False, "gloo", torch.device("cpu"), default_float64=True)
+
+
 @pytest.mark.skipif(
     not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
     reason="needs two GPUs and NCCL",
@@ -36,10 +48,14 @@ def test_a_sharded_render_on_two_gpus_is_the_whole_scenes_render(tmp_path, visib
     check_sharded_render(tmp_path, (700, 500), True, visible_only, "nccl", torch.device("cuda", 0))
 
 
-def check_sharded_render(tmp_path, rows, split, visible_only, backend, device):
+def check_sharded_render(tmp_path, rows, split, visible_only, backend, device, default_float64=False, capacity=None):
     world, seed, width, height, degree = 2, 3, 40, 30, 2
     exact = device.type == "cpu"
     options = dict(rows=rows, seed=seed, width=width, height=height, split=split, visible_only=visible_only)
+    if default_float64:
+        options["default_float64"] = True
+    if capacity is not None:
+        options["capacity"] = capacity
     outs = run_ranks("sharded_render", world, tmp_path, timeout=180.0, backend=backend, **options)
     for rank, out in enumerate(outs):
         assert "result" in out, f"rank {rank}: {out.get('error')}: {out.get('message')}\n{out.get('traceback', '')}"
@@ -83,6 +99,43 @@ def check_sharded_render(tmp_path, rows, split, visible_only, backend, device):
     assert sum(bool(p.grad.abs().sum() > 0) for p in params) == len(params)  # every parameter had a gradient
 
 
+@pytest.mark.skipif(
+    not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
+    reason="needs two GPUs and NCCL",
+)
+@pytest.mark.parametrize("way", [{}, {"capacity": 4096}], ids=["every-gaussian", "into-slots"])
+def test_a_mistake_on_one_of_two_gpus_raises_on_both(tmp_path, way, device):
+    """The same through NCCL, whose transfers are queued on the GPU: a wrong tensor on one
+    process, and a NaN on the other."""
+    if device == "cpu":
+        pytest.skip("NCCL on two GPUs (the CPU case is the test above)")
+    for spoil, errors in [((1, "shape"), ["PeerError", "ValueError"]), ((0, "nan"), ["NonFiniteError"] * 2)]:
+        outs = run_ranks(
+            "sharded_render", 2, tmp_path, timeout=180.0, rows=(30, 30), spoil=spoil, backend="nccl", **way
+        )
+        assert [out.get("error") for out in outs] == errors, outs
+
+
+def test_a_view_beyond_its_slots_raises_at_check(tmp_path):
+    """A capacity below a view's pairs: CapacityError from ``info.check()`` on the process of
+    that view alone, after a backward pass that both took (below both views' pairs: on both)."""
+    scene, cameras, _ = sharded_scene(60, 2, 0, 40, 30, 2)
+    counts = [rasterize(*scene, camera=camera, sh_degree=2)[2].num_intersections for camera in cameras]
+    assert counts[0] != counts[1], counts
+    for capacity in (min(counts), 8):
+        outs = run_ranks("sharded_render", 2, tmp_path, timeout=60.0, rows=(30, 30), capacity=capacity)
+        expected = ["CapacityError" if count > capacity else None for count in counts]
+        assert [out.get("error") for out in outs] == expected, (capacity, outs)
+
+
+def test_a_wrong_tensor_into_slots_under_a_float64_default_still_raises_on_both(tmp_path):
+    """The process with the wrong tensor goes on with zeros (float32, whatever the default) to
+    the end of the backward pass, so the other is not left waiting."""
+    options = dict(rows=(30, 30), spoil=(1, "shape"), capacity=4096, default_float64=True)
+    outs = run_ranks("sharded_render", 2, tmp_path, timeout=60.0, **options)
+    assert [out.get("error") for out in outs] == ["PeerError", "ValueError"], outs
+
+
 def test_a_sharded_render_names_what_is_wrong():
     """Bad arguments raise ValueError naming them (one process, a group of its own)."""
     import torch.distributed as dist
@@ -102,9 +155,13 @@ def test_a_sharded_render_names_what_is_wrong():
             ({"rows": [7]}, "means"),
             ({"sh_degree": 4}, "sh_degree"),
             ({"sh_degree": 2}, "degree 2 needs 9"),
+            ({"capacity": 0}, "capacity must be a positive int"),
+            ({"capacity": 64, "visible_only": True}, "capacity and visible_only"),
         ]:
             with pytest.raises(ValueError, match=match):
                 rasterize_shard(*scene, **{**good, **changes})
+        with pytest.raises(ValueError, match="means is on meta"):
+            rasterize_shard(scene[0].to("meta"), *scene[1:], **good)
         image, alpha, _ = rasterize_shard(*scene, **good)  # and one process is the whole scene
         whole, whole_alpha, _ = rasterize(*scene, camera=cameras[0], sh_degree=1)
         assert torch.equal(image, whole) and torch.equal(alpha, whole_alpha)
@@ -113,17 +170,22 @@ def test_a_sharded_render_names_what_is_wrong():
 
 
 @pytest.mark.parametrize(
-    "spoil, error, messages",
+    "way", [{}, {"visible_only": True}, {"capacity": 4096}], ids=["every-gaussian", "visible-only", "into-slots"]
+)
+@pytest.mark.parametrize(
+    "spoil, errors, messages",
     [
-        ((1, "shape"), "ValueError", ["another process's arguments", "means must have shape"]),
-        ((0, "nan"), "NonFiniteError", ["means", "means"]),
+        ((1, "shape"), ["PeerError", "ValueError"], ["another process's arguments", "means must have shape"]),
+        ((0, "nan"), ["NonFiniteError", "NonFiniteError"], ["means", "means"]),
     ],
     ids=["a-wrong-shape-on-one", "nan-on-one"],
 )
-def test_a_mistake_on_one_process_raises_on_every_one(tmp_path, spoil, error, messages):
+def test_a_mistake_on_one_process_raises_on_every_one(tmp_path, spoil, errors, messages, way):
     """A wrong tensor or a NaN in one process's slice raises on both processes, which would
-    otherwise wait for each other in the exchange: the run stops, with the reason, not hangs."""
-    outs = run_ranks("sharded_render", 2, tmp_path, timeout=60.0, rows=(30, 30), spoil=spoil)
-    assert [out.get("error") for out in outs] == [error, error], outs
+    otherwise wait for each other in an exchange: the run stops, with the reason, not hangs (into
+    slots, at ``info.check()`` after the backward pass, which the process with the wrong tensor
+    takes with zeros)."""
+    outs = run_ranks("sharded_render", 2, tmp_path, timeout=60.0, rows=(30, 30), spoil=spoil, **way)
+    assert [out.get("error") for out in outs] == errors, outs
     for out, message in zip(outs, messages):
         assert message in out["message"], out["message"]

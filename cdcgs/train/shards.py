@@ -19,12 +19,13 @@ at once:
    every view: its parameters' gradients are the step's (the sum over the views), with nothing
    all-reduced.
 
-A step thus moves 12 floats a Gaussian forward and 10 back, against data parallelism's all-reduce
-of 59, and no process holds another's parameters, gradients or Adam moments. By default every
+A step thus moves 12 numbers a Gaussian forward (10 floats, 2 int32) and 10 floats back, against
+data parallelism's all-reduce of 59 floats, and no process holds another's parameters, gradients or Adam moments. By default every
 projected Gaussian goes to every view, visible or not (fixed sizes, known to every process);
 ``visible_only`` sends a view only the Gaussians it sees. The render reads its intersection count
 on the host, as :func:`cdcgs.render.rasterize` without ``capacity``, and every process's flags with
-it: nothing else waits for the device.
+it: without ``visible_only`` nothing else waits for the device. With ``capacity`` nothing is read
+on the host (``info.check()`` reads it later), so a step can be captured as a CUDA graph.
 
 This module is the render; a training on shards (densification per slice, Adam per slice, the
 evaluation and the files gathered) builds on it and is not there yet.
@@ -36,17 +37,21 @@ import torch
 import torch.distributed as dist
 
 from .._interop import torch_tensor, warp_scope
+from ..errors import PeerError
 from ..kernels._constants import MAX_SH_DEGREE
+from ..kernels.binning import finish_binning_within
 from ..render import (
     PreparedCamera,
     RasterizeInfo,
     _bin,
     _Blend,
+    _check_capacity,
     _check_tensor,
     _info,
     _Project,
     _raise_nonfinite,
     _ShColor,
+    _start_bin,
 )
 
 __all__ = ["FIELDS", "rasterize_shard"]
@@ -57,6 +62,7 @@ FIELDS = (("means2d", 2), ("conics", 3), ("colors", 3), ("opacities", 1), ("dept
 DIFFERENTIABLE = 5
 _NAMES = ("means", "quats", "scales", "opacities", "sh")
 _WRONG = len(_NAMES)  # the flag of a process whose arguments were wrong, after the non-finite ones
+_FLAG_NAMES = (*_NAMES, PeerError.FLAG)
 
 
 def _peer(group, rank: int) -> int:
@@ -86,10 +92,11 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
 class _Exchange(torch.autograd.Function):
     """Each view's fields to the process that renders it, field by field; their gradients back.
 
-    Inputs: ``layout`` (send_rows, receive_rows, group), then the fields of view 0 (FIELDS, in
-    order), of view 1, ...; and this process's flags, which every other process receives beside
-    the fields. Returns the received fields (each [sum(receive_rows), width], in process order)
-    and the flags of every process [W, F]."""
+    Inputs: ``layout`` (send_rows, receive_rows, group); this process's flags, which every other
+    process receives beside the fields; then the fields of view 0 (FIELDS, in order), of view 1,
+    .... Returns the received fields (each [sum(receive_rows), width], [sum(receive_rows)] where
+    the width is 1, in process order) and the flags of every process [W, F]. The gradients are
+    float32, as the fields."""
 
     @staticmethod
     def forward(ctx, layout, flags, *fields):
@@ -120,11 +127,16 @@ class _Exchange(torch.autograd.Function):
         offsets = [sum(receive_rows[:r]) for r in range(world)]
         device = ctx.device
         grads = [
-            torch.zeros(sum(receive_rows), width, device=device).squeeze(-1) if g is None else g.contiguous()
+            torch.zeros(sum(receive_rows), width, dtype=torch.float32, device=device).squeeze(-1)
+            if g is None
+            else g.contiguous()
             for g, (_, width) in zip(grads[:DIFFERENTIABLE], FIELDS)
         ]
         back = [
-            [torch.empty(send_rows[v], width, device=device).squeeze(-1) for _, width in FIELDS[:DIFFERENTIABLE]]
+            [
+                torch.empty(send_rows[v], width, dtype=torch.float32, device=device).squeeze(-1)
+                for _, width in FIELDS[:DIFFERENTIABLE]
+            ]
             for v in range(world)
         ]
         _swap([[g[offsets[r] : offsets[r] + receive_rows[r]] for g in grads] for r in range(world)], back, group)
@@ -148,6 +160,7 @@ def rasterize_shard(
     background: torch.Tensor | None = None,
     antialiased: bool = False,
     visible_only: bool = False,
+    capacity: int | None = None,
     group=None,
 ) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
     """This process's view of the whole scene, rendered from the slices of all processes.
@@ -168,12 +181,26 @@ def rasterize_shard(
     and gradients are the same, and ``info``'s per-Gaussian tensors hold the Gaussians the view
     sees and the first of each slice (so that no view receives none), in the slices' order.
 
-    Unlike :func:`cdcgs.render.rasterize`: no ``render_depth`` and no ``capacity`` (the render reads
-    its intersection count); ``background`` is not checked for NaN, and a background that requires
+    ``capacity``: as :func:`cdcgs.render.rasterize`'s, the view's pairs binned into that many
+    slots and nothing read back (not with ``visible_only``), so that the step can be captured as a
+    CUDA graph: ``info.check()`` (after the backward pass, which every process must take) then
+    raises what the render did not: a wrong argument of this process (ValueError naming it; the
+    render went on with zeros for it, so that the others are not left waiting), NonFiniteError,
+    PeerError for another process's wrong arguments, and CapacityError when this process's view
+    overflowed its slots. That last one is this process's alone: a caller that stops on it must
+    agree on it with the others first (e.g. an all-reduce of the flags), or they wait for it in
+    the next exchange.
+
+    Unlike :func:`cdcgs.render.rasterize`: no ``render_depth``; ``background`` is not checked for NaN, and a background that requires
     grad gets this view's gradient alone. A wrong tensor on one process raises ValueError on every
     process (naming it on that one): that process takes its part in the exchange with zeros and
-    raises after it, the others at their count read, so that none is left waiting in an exchange.
-    NaN or inf in any slice raises NonFiniteError on every process, at the same read.
+    raises after it, the others PeerError at their count read (with ``visible_only``, all at the
+    read of the counts, before the fields are sent; with ``capacity``, all at ``info.check()``),
+    so that none is left waiting in an exchange. NaN or inf in any slice raises NonFiniteError on
+    every process, at the same read. The tensors must be on the CPU under gloo and on the
+    process's current GPU under NCCL. Every process must pass the
+    same ``rows``, ``cameras``, ``sh_degree``, ``antialiased``, ``visible_only`` and ``capacity``
+    (None or not), and back-propagate through its image (the backward pass exchanges too).
     """
     rank, world = dist.get_rank(group), dist.get_world_size(group)
     if len(cameras) != world or not all(isinstance(c, PreparedCamera) for c in cameras):
@@ -187,10 +214,20 @@ def rasterize_shard(
         raise ValueError(f"every process's view must have one image size, got {sorted(sizes)}")
     if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= MAX_SH_DEGREE:
         raise ValueError(f"sh_degree must be an int in 0..{MAX_SH_DEGREE}, got {sh_degree!r}")
+    _check_capacity(capacity)
+    if capacity is not None and visible_only:
+        raise ValueError("capacity and visible_only: visible_only reads the counts on the host, capacity reads nothing")
     n = rows[rank]
+    backend = str(dist.get_backend(group))  # "nccl", "gloo", or a mixed one that takes both
     try:  # this process's tensors: a mistake here must not leave the others waiting in the exchange
         means = _check_tensor("means", means, (n, 3), None)
         device = means.device
+        if backend == "nccl" and device != torch.device("cuda", torch.cuda.current_device()):
+            raise ValueError(f"means is on {device}: NCCL needs this process's tensors on its current GPU")
+        if backend == "gloo" and device.type != "cpu":
+            raise ValueError(f"means is on {device}: the process group's gloo takes CPU tensors")
+        if device.type not in ("cpu", "cuda"):
+            raise ValueError(f"means is on {device}: the render runs on the CPU or a CUDA GPU")
         quats = _check_tensor("quats", quats, (n, 4), device)
         scales = _check_tensor("scales", scales, (n, 3), device)
         opacities = _check_tensor("opacities", opacities, (n,), device)
@@ -208,12 +245,14 @@ def rasterize_shard(
         wrong = None
     except ValueError as err:
         wrong = err
-        cuda = dist.get_backend(group) == "nccl"
+        cuda = backend != "gloo" and torch.cuda.is_available()
         device = torch.device("cuda", torch.cuda.current_device()) if cuda else torch.device("cpu")
+        background = torch.zeros(3, dtype=torch.float32, device=device)  # with capacity the render goes on
     camera = cameras[rank]
     # This slice's flags of non-finite inputs, and one for this process's wrong arguments: every
     # process receives every other's with the fields, and all raise together at the render's count
-    # read (or at the exchange of the counts), so none is left waiting in an exchange.
+    # read (or at the exchange of the counts; with capacity, at info.check()), so none is left
+    # waiting in an exchange.
     flags = torch.zeros(len(_NAMES) + 1, dtype=torch.int32, device=device)
     nonfinite = flags[: len(_NAMES)]
     with warp_scope(device):
@@ -225,7 +264,7 @@ def rasterize_shard(
                 )
                 colors = _ShColor.apply(means, sh, sh_rest, sh_degree, view, radii, nonfinite[len(_NAMES) - 1 :])
                 views.append([means2d, conics, colors, composited, depths, radii])
-        else:  # zeros of the right sizes take this process's part in the exchange
+        else:  # zeros of the right sizes take this process's part in the exchanges, both ways
             flags[_WRONG] = 1
             views = [[_zeros(n, width, device, name) for name, width in FIELDS] for _ in cameras]
         send_rows, receive_rows = [n] * world, list(rows)
@@ -246,33 +285,44 @@ def rasterize_shard(
         *received, every_flags = _Exchange.apply(
             (send_rows, receive_rows, group), flags, *(field for fields in views for field in fields)
         )
-        if wrong is not None:
+        if wrong is not None and capacity is None:  # the others raise at their count read
+            every_flags.tolist()  # its transfers done before it raises (and perhaps leaves the group)
             raise wrong
         flags = every_flags.amax(0)
         means2d, conics, colors, composited, depths, radii = received
-        bins = _bin(means2d, radii, depths, conics, composited, camera.width, camera.height, _reader(flags))
+        pending = None
+        if capacity is None:
+            bins = _bin(means2d, radii, depths, conics, composited, camera.width, camera.height, _reader(flags))
+        else:  # nothing read back: the flags, the overflow and the count wait for info.check()
+            start = _start_bin(means2d, radii, depths, conics, composited, camera.width, camera.height)
+            bins, overflow = finish_binning_within(start, capacity)
+            pending = torch.cat([flags, torch_tensor(overflow), torch_tensor(start.offsets)[-1:]])
         absgrad_request = {}  # info.retain_absgrad() puts the AbsGS sums' tensor here for the backward pass
         image, transmittance, _depth_sum, last = _Blend.apply(
             means2d, conics, colors, composited, depths, background, bins, camera.width, camera.height, absgrad_request
         )
     projection = (means2d, conics, depths, composited, radii)
     info = _info(camera.width, camera.height, projection, bins, colors, last, transmittance, None, absgrad_request)
+    if pending is not None:  # with a wrong argument here, the others raise at check() too
+        info.pending, info._pending_names, info._deferred = pending, _FLAG_NAMES, wrong
+        if device.type == "cuda":
+            info._pending_stream = torch.cuda.current_stream(device)
     return image, 1.0 - transmittance, info
 
 
 def _zeros(rows: int, width: int, device: torch.device, name: str) -> torch.Tensor:
-    dtype = torch.int32 if name == "radii" else torch.float32
-    return torch.zeros(rows, width, dtype=dtype, device=device).squeeze(-1)
+    """A field of zeros; a float one requires grad, so that the backward pass exchanges too."""
+    if name == "radii":
+        return torch.zeros(rows, width, dtype=torch.int32, device=device)
+    return torch.zeros(rows, width, device=device, dtype=torch.float32).squeeze(-1).requires_grad_(True)
 
 
 def _raise_flagged(wrong: ValueError | None, flags: list[int]) -> None:
-    """This process's own error, else one naming another's wrong arguments or a non-finite input
-    (the flags of every process combined)."""
+    """This process's own error, else NonFiniteError for a non-finite input or PeerError for
+    another process's wrong arguments (the flags of every process combined)."""
     if wrong is not None:
         raise wrong
-    if flags[_WRONG]:
-        raise ValueError("another process's arguments to rasterize_shard were wrong (its error says which)")
-    _raise_nonfinite(_NAMES, flags[: len(_NAMES)])
+    _raise_nonfinite(_FLAG_NAMES, flags)
 
 
 def _reader(flags: torch.Tensor):
