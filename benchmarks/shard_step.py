@@ -149,18 +149,7 @@ def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: 
         for p in mine.values():
             p.grad = None
         views = [cameras[(step * world + r) % len(cameras)] for r in range(world)]
-        image, _, _ = rasterize_shard(
-            mine["means"],
-            mine["quats"],
-            mine["log_scales"].exp(),
-            torch.sigmoid(mine["opacity_logits"]),
-            mine["sh_dc"],
-            sh_rest=mine["sh_rest"],
-            sh_degree=model.sh_degree,
-            cameras=views,
-            rows=rows,
-            visible_only=visible_only,
-        )
+        image, _, _ = render_slice(mine, model.sh_degree, views, rows, visible_only=visible_only)
         (image * weight).sum().backward()
 
     row = {"gaussians": n, "slices": rows}
@@ -177,6 +166,22 @@ def measure(ranks: Ranks, device: torch.device, source: GaussianModel, cameras: 
     if device.type == "cuda":
         row.update(measure_replayed(ranks, device, model, mine, rows, cameras, weight, repeats))
     return row
+
+
+def render_slice(mine: dict, sh_degree: int, views: list, rows: list[int], **options):
+    """:func:`rasterize_shard` of this process's slice (a model's parameters, ``mine``)."""
+    return rasterize_shard(
+        mine["means"],
+        mine["quats"],
+        mine["log_scales"].exp(),
+        torch.sigmoid(mine["opacity_logits"]),
+        mine["sh_dc"],
+        sh_rest=mine["sh_rest"],
+        sh_degree=sh_degree,
+        cameras=views,
+        rows=rows,
+        **options,
+    )
 
 
 def sum_over(ranks: Ranks, device: torch.device, value: float) -> float:
@@ -208,18 +213,7 @@ def measure_replayed(ranks, device, model, mine, rows, cameras, weight, repeats)
         return body
 
     def sharded():
-        image, _, infos["sharded"] = rasterize_shard(
-            mine["means"],
-            mine["quats"],
-            mine["log_scales"].exp(),
-            torch.sigmoid(mine["opacity_logits"]),
-            mine["sh_dc"],
-            sh_rest=mine["sh_rest"],
-            sh_degree=model.sh_degree,
-            cameras=replay.views,
-            rows=rows,
-            capacity=capacity,
-        )
+        image, _, infos["sharded"] = render_slice(mine, model.sh_degree, replay.views, rows, capacity=capacity)
         (image * weight).sum().backward()
 
     row = {"capacity": capacity}
