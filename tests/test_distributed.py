@@ -16,7 +16,7 @@ from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.errors import OptionError
 from cdcgs.train import ops
 from cdcgs.train.config import LearningRates, TrainConfig, batch_rule
-from cdcgs.train.distributed import balanced_positions, choose_backend, my_positions, step_seed
+from cdcgs.train.distributed import balanced_positions, choose_backend, my_positions, splits_by_counts, step_seed
 from cdcgs.train.trainer import Trainer, crossed
 
 pytestmark = pytest.mark.skipif(
@@ -452,6 +452,9 @@ def test_the_split_by_counts_pairs_the_costliest_with_the_cheapest():
     assert [balanced_positions([7, 1, 4, 2, 9, 3], rank, 3, turn=2) for rank in (0, 1, 2)] == [[0, 3], [2, 5], [1, 4]]
     with pytest.raises(ValueError, match="does not split evenly"):
         balanced_positions([1, 2, 3], 0, 2)
+    # what --dist-balance counts splits: a multiple of the processes, two views or more each
+    assert [splits_by_counts(count, 2) for count in (2, 3, 4, 5, 6)] == [False, False, True, False, True]
+    assert [splits_by_counts(count, 3) for count in (3, 6, 8, 9)] == [False, True, False, True]
 
 
 def test_a_batch_smaller_than_the_processes_is_refused(small_scene, tmp_path):

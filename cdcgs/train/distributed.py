@@ -67,6 +67,12 @@ def my_positions(batch: int, rank: int, world: int) -> list[int]:
     return list(range(rank, batch, world))
 
 
+def splits_by_counts(count: int, world: int) -> bool:
+    """Whether ``--dist-balance counts`` can split a batch of ``count`` views over ``world``
+    processes: a multiple of them, two views or more each."""
+    return count % world == 0 and count >= 2 * world
+
+
 def balanced_positions(costs: list, rank: int, world: int, turn: int = 0) -> list[int]:
     """The positions of a step's batch that ``rank`` of ``world`` renders when the view at position
     ``p`` costs ``costs[p]`` (e.g. its intersection count): every process takes ``len(costs) /

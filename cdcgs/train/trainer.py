@@ -24,7 +24,16 @@ from ..io.checkpoint import remove_temporary_files
 from ..render import bin_view, prepare_camera, rasterize, sh_adjoint, start_bin_view
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
-from .distributed import Ranks, StatisticsSync, _environment, balanced_positions, my_positions, rank_device, step_seed
+from .distributed import (
+    Ranks,
+    StatisticsSync,
+    _environment,
+    balanced_positions,
+    my_positions,
+    rank_device,
+    splits_by_counts,
+    step_seed,
+)
 from .evaluate import evaluate, lpips_metric
 from .graph import GraphSteps, graph_refusal
 from .guard import NumericGuard, TrainingDiverged
@@ -944,7 +953,7 @@ class Trainer:
         world, batch = self.ranks.world, self.config.batch_size
         if world < 2:
             return "one process"
-        if batch % world or batch < 2 * world:
+        if not splits_by_counts(batch, world):
             return f"--batch-size {batch} is not two views or more for each of {world} processes"
         if self.lookahead is None:
             return f"no counts to split by (--sync-free or the replayed steps give them; {self.graph_off})"
@@ -959,8 +968,8 @@ class Trainer:
         take now (its count grown with the Gaussians since)."""
         count, rank, world = len(views), self.ranks.rank, self.ranks.world
         lookahead = self.lookahead
-        splits = count % world == 0 and count >= 2 * world
-        if self.config.dist_balance == "counts" and world > 1 and lookahead is not None and splits:
+        splits = world > 1 and splits_by_counts(count, world)
+        if self.config.dist_balance == "counts" and lookahead is not None and splits:
             scale = self._downscale(first)
             costs = [lookahead.capacity(v, self.model.num, scale, agreed=True) for v in views]
             if all(cost is not None for cost in costs):
