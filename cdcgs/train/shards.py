@@ -20,12 +20,13 @@ at once:
    all-reduced.
 
 A step thus moves 12 numbers a Gaussian forward (10 floats, 2 int32) and 10 floats back, against
-data parallelism's all-reduce of 59 floats, and no process holds another's parameters, gradients or Adam moments. By default every
-projected Gaussian goes to every view, visible or not (fixed sizes, known to every process);
-``visible_only`` sends a view only the Gaussians it sees. The render reads its intersection count
-on the host, as :func:`cdcgs.render.rasterize` without ``capacity``, and every process's flags with
-it: without ``visible_only`` nothing else waits for the device. With ``capacity`` nothing is read
-on the host (``info.check()`` reads it later), so a step can be captured as a CUDA graph.
+data parallelism's all-reduce of 59 floats, and no process holds another's parameters, gradients
+or Adam moments. By default every projected Gaussian goes to every view, visible or not (fixed
+sizes, known to every process); ``visible_only`` sends a view only the Gaussians it sees. The
+render reads its intersection count on the host, as :func:`cdcgs.render.rasterize` without
+``capacity``, and every process's flags with it: without ``visible_only`` nothing else waits for
+the device. With ``capacity`` nothing is read on the host (``info.check()`` reads it later), so a
+step can be captured as a CUDA graph.
 
 This module is the render; a training on shards (densification per slice, Adam per slice, the
 evaluation and the files gathered) builds on it and is not there yet.
@@ -191,14 +192,14 @@ def rasterize_shard(
     agree on it with the others first (e.g. an all-reduce of the flags), or they wait for it in
     the next exchange.
 
-    Unlike :func:`cdcgs.render.rasterize`: no ``render_depth``; ``background`` is not checked for NaN, and a background that requires
-    grad gets this view's gradient alone. A wrong tensor on one process raises ValueError on every
-    process (naming it on that one): that process takes its part in the exchange with zeros and
-    raises after it, the others PeerError at their count read (with ``visible_only``, all at the
-    read of the counts, before the fields are sent; with ``capacity``, all at ``info.check()``),
-    so that none is left waiting in an exchange. NaN or inf in any slice raises NonFiniteError on
-    every process, at the same read. The tensors must be on the CPU under gloo and on the
-    process's current GPU under NCCL. Every process must pass the
+    Unlike :func:`cdcgs.render.rasterize`: no ``render_depth``; ``background`` is not checked for
+    NaN, and a background that requires grad gets this view's gradient alone. A wrong tensor on one
+    process raises ValueError on every process (naming it on that one): that process takes its
+    part in the exchange with zeros and raises after it, the others PeerError at their count read
+    (with ``visible_only``, all at the read of the counts, before the fields are sent; with
+    ``capacity``, all at ``info.check()``), so that none is left waiting in an exchange. NaN or inf
+    in any slice raises NonFiniteError on every process, at the same read. The tensors must be on
+    the CPU under gloo and on the process's current GPU under NCCL. Every process must pass the
     same ``rows``, ``cameras``, ``sh_degree``, ``antialiased``, ``visible_only`` and ``capacity``
     (None or not), and back-propagate through its image (the backward pass exchanges too).
     """
