@@ -32,17 +32,34 @@ def add_kernel_options(parser) -> None:
         help="how the Γ pass finds w_max under the alpha rule: each pixel walks its tile list, or each list "
         "entry scatters to its support box (cdcgs.complexity.W_MAX_PASS; default: as it is)",
     )
+    parser.add_argument(
+        "--gamma-views-per-launch",
+        type=int,
+        default=None,
+        help="views the Γ pass measures in one launch (cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH; 1: one a launch; "
+        "default: as it is)",
+    )
 
 
 def check_kernel_options(parser, args) -> None:
     if args.blend_chunk is not None and (args.blend_chunk < 0 or args.blend_chunk % BLOCK_SIZE):
         parser.error(f"--blend-chunk must be 0 or a multiple of {BLOCK_SIZE}, got {args.blend_chunk}")
+    views = getattr(args, "gamma_views_per_launch", None)
+    if views is not None and views < 1:
+        parser.error(f"--gamma-views-per-launch must be at least 1, got {views}")
 
 
 @contextlib.contextmanager
 def kernel_options(args):
     """The renderer with ``args``' choices for the duration, as it was after."""
-    before = cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK, cdcgs.complexity.W_MAX_PASS
+    before = (
+        cdcgs.render.BLEND_BACKWARD_CUDA,
+        cdcgs.render.BLEND_CHUNK,
+        cdcgs.complexity.W_MAX_PASS,
+        cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH,
+    )
+    if getattr(args, "gamma_views_per_launch", None):
+        cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH = args.gamma_views_per_launch
     if getattr(args, "w_max_pass", None):
         cdcgs.complexity.W_MAX_PASS = args.w_max_pass
     if args.blend_backward:
@@ -52,4 +69,9 @@ def kernel_options(args):
     try:
         yield
     finally:
-        cdcgs.render.BLEND_BACKWARD_CUDA, cdcgs.render.BLEND_CHUNK, cdcgs.complexity.W_MAX_PASS = before
+        (
+            cdcgs.render.BLEND_BACKWARD_CUDA,
+            cdcgs.render.BLEND_CHUNK,
+            cdcgs.complexity.W_MAX_PASS,
+            cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH,
+        ) = before

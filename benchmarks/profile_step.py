@@ -294,7 +294,7 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     maps = ComplexityMaps(trainer.scene.train[:views], "dwt", device)
     maps.all()
-    ways = {"pipelined": trainer._bins, "one at a time": lambda i: trainer._bins(i).finish()}
+    ways = {"pipelined": trainer._bins, "one at a time": lambda i: _finished(trainer._bins(i))}
     for bins in ways.values():  # warm-up
         complexity_over_views(bins, maps, trainer.model.num, device)
     sync()
@@ -322,6 +322,12 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
         "kernel_ms_per_view": sum(kernels.values()),
         "top_kernels": top,
     }
+
+
+def _finished(bins):
+    """A view's lists finished: pending ones (``start_bin_view``) waited for; those binned into
+    slots (a training that replays its steps) are finished already."""
+    return bins.finish() if hasattr(bins, "finish") else bins
 
 
 def _annotation(event) -> bool:

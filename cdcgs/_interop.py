@@ -19,6 +19,7 @@ __all__ = [
     "ensure_warp",
     "halt_arg",
     "launch",
+    "small_table",
     "torch_allocators",
     "torch_tensor",
     "unpin_descriptor",
@@ -69,6 +70,15 @@ def torch_tensor(array: wp.array) -> torch.Tensor:
     """The tensor of a :func:`wp_array` view; of any other Warp array, ``wp.to_torch``'s view."""
     tensor = getattr(array, "_cdcgs_tensor", None)
     return wp.to_torch(array, requires_grad=False) if tensor is None else tensor
+
+
+def small_table(device: torch.device, rows: list, dtype: torch.dtype) -> torch.Tensor:
+    """A small table of host values on ``device`` (a kernel's argument table); on CUDA copied from
+    pinned memory without waiting (torch's pinned allocator keeps the host block until the copy has
+    run)."""
+    if device.type != "cuda":
+        return torch.tensor(rows, dtype=dtype)
+    return torch.tensor(rows, dtype=dtype, pin_memory=True).to(device, non_blocking=True)
 
 
 @functools.cache

@@ -20,15 +20,17 @@ import ptwt
 import torch
 import warp as wp
 
-from ._interop import launch, warp_scope, wp_arg
+from ._interop import launch, small_table, warp_scope, wp_arg
 from .kernels._constants import BLOCK_SIZE
 from .kernels.blend import (
     MAX_EXACT,
     MAX_RACY_KEEP,
     MAX_RACY_RANK,
+    VIEW_TABLE_COLUMNS,
     W_MAX_ALPHA,
     W_MAX_WEIGHT,
     complexity_kernel,
+    complexity_views_kernel,
     w_max_alpha_kernel,
 )
 from .render import any_overflowed
@@ -42,6 +44,7 @@ __all__ = [
     "complexity_map",
     "complexity_over_views",
     "gaussian_complexity",
+    "gaussian_complexity_views",
     "high_frequency",
     "luma",
 ]
@@ -55,6 +58,13 @@ W_MAX_RULES = ("alpha", "weight")
 # scatter took 2.47 ms a view at 1M trained Gaussians against the walk's 1.98 (docs/benchmarks.md).
 W_MAX_PASSES = ("walk", "scatter")
 W_MAX_PASS = "walk"
+# A Γ pass measures up to this many views in one launch (complexity_views_kernel) where it takes
+# the exact max over pixels and views with the walk's w_max (the default): one view's launch
+# leaves most SMs idle while its longest tile lists finish, and the next views' tiles take them.
+# Their projections and tile lists are alive together: fewer views where they would hold more
+# than GAMMA_VIEWS_BYTES. 1: one view a launch, as before.
+GAMMA_VIEWS_PER_LAUNCH = 8
+GAMMA_VIEWS_BYTES = 1 << 30
 LUMA = (0.299, 0.587, 0.114)
 
 
@@ -196,6 +206,95 @@ def gaussian_complexity(
     return (max_out, sum_out, count_out) if sums else (max_out, None, None)
 
 
+def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into: torch.Tensor, w_max: str = "alpha"):
+    """The max over pixels of :func:`gaussian_complexity` (``sums=False``, exact, w_max found by the
+    walk) of several views of the same Gaussians and image size, taken into ``max_into`` in one
+    launch: ``max_into`` ends as the max of itself and every view's, the same bits as one call of
+    :func:`gaussian_complexity` per view with ``max_into`` (a max does not depend on the order).
+    ``infos``: their :class:`cdcgs.render.RasterizeInfo` (binned; a render's or ``bin_view``'s),
+    ``hf_maps`` their views' [H, W] uint8 maps. Returns ``max_into``."""
+    if not infos or len(infos) != len(hf_maps):
+        raise ValueError(
+            f"gaussian_complexity_views needs as many maps as views (at least one), got {len(infos)} and {len(hf_maps)}"
+        )
+    if w_max not in W_MAX_RULES:
+        raise ValueError(f"w_max must be one of {', '.join(W_MAX_RULES)}, got {w_max!r}")
+    first = infos[0]
+    n, width, height = first.means2d.shape[0], first.width, first.height
+    device = first.means2d.device
+    if max_into.shape != (n,) or max_into.dtype != torch.float32 or max_into.device != device:
+        raise ValueError(
+            f"max_into must be a float32 [{n}] tensor on {device}, got {max_into.dtype} {list(max_into.shape)}"
+        )
+    held = []  # the launch reads them through their addresses: alive until it is queued
+    rows = []
+    for info, hf_map in zip(infos, hf_maps):
+        if (info.width, info.height, info.means2d.shape[0], info.means2d.device) != (width, height, n, device):
+            raise ValueError(
+                f"gaussian_complexity_views measures views of one image size and the same Gaussians: a "
+                f"{info.width} x {info.height} view of {info.means2d.shape[0]} beside a {width} x {height} one of {n}"
+            )
+        if hf_map.shape != (height, width) or hf_map.dtype != torch.uint8:
+            raise ValueError(f"hf_map must be a uint8 [{height}, {width}] map, got {hf_map.dtype} {list(hf_map.shape)}")
+        tensors = [
+            info.tile_ranges.contiguous(),
+            info.sorted_gauss_ids.contiguous(),
+            info.means2d.detach().contiguous(),
+            info.conics.detach().contiguous(),
+            info.opacities.detach().contiguous(),
+            hf_map.to(device).contiguous(),
+        ]
+        held += tensors
+        rows.append([t.data_ptr() for t in tensors] + [tensors[1].numel()])
+    assert len(rows[0]) == VIEW_TABLE_COLUMNS
+    table = small_table(device, rows, torch.int64)
+    held.append(table)
+    tiles_x, tiles_y = first.tiles_x, first.tiles_y
+    empty = torch.zeros(0, device=device)
+    with warp_scope(device):
+        launch(
+            complexity_views_kernel,
+            len(infos) * tiles_x * tiles_y * BLOCK_SIZE,
+            inputs=[
+                wp_arg(table, wp.int64),
+                n,
+                width,
+                height,
+                tiles_x,
+                tiles_y,
+                W_MAX_ALPHA if w_max == "alpha" else W_MAX_WEIGHT,
+                wp_arg(empty, wp.float32),
+                wp_arg(torch.zeros(0, dtype=torch.int32, device=device), wp.int32),
+            ],
+            outputs=[
+                wp_arg(max_into, wp.float32),
+                wp_arg(torch.zeros(1, device=device), wp.float32),
+                wp_arg(torch.zeros(1, dtype=torch.int32, device=device), wp.int32),
+            ],
+            block_dim=BLOCK_SIZE,
+        )
+    return max_into
+
+
+def views_per_launch(info) -> int:
+    """How many views like ``info`` a Γ pass measures in one launch (:data:`GAMMA_VIEWS_PER_LAUNCH`,
+    fewer where their projections and tile lists would hold more than :data:`GAMMA_VIEWS_BYTES`)."""
+    held = sum(
+        t.numel() * t.element_size()
+        for t in (
+            info.means2d,
+            info.conics,
+            info.opacities,
+            info.depths,
+            info.radii,
+            info.tile_counts,
+            info.sorted_gauss_ids,
+        )
+        if t is not None
+    )
+    return max(1, min(GAMMA_VIEWS_PER_LAUNCH, GAMMA_VIEWS_BYTES // max(held, 1)))
+
+
 class ComplexityMaps:
     """The complexity maps of a list of views, computed on first use and kept (a cache owned by
     whoever owns it: a training run, a viewer). Views whose image is not loaded yet are loaded.
@@ -335,10 +434,31 @@ def complexity_over_views(
 
 
 def _measure_views(bins, maps, indices, num_gaussians, device, options):
-    """(the accumulator of ``indices``' views, the ``pending_flags`` of those binned into slots)."""
+    """(the accumulator of ``indices``' views, the ``pending_flags`` of those binned into slots).
+    Where the accumulator takes the exact max over pixels and views with the walk's w_max, the
+    views are measured up to :func:`views_per_launch` at a time (:func:`gaussian_complexity_views`),
+    else one at a time; the same Γ either way."""
     accumulator = ViewComplexity(num_gaussians, device, **options)
     seed = accumulator.views_added
     slotted = []
+    together = (
+        accumulator.pixel_aggregation == "max"
+        and accumulator.view_aggregation == "max"
+        and not accumulator.racy_max
+        and (accumulator.w_max == "weight" or W_MAX_PASS == "walk")
+        and GAMMA_VIEWS_PER_LAUNCH > 1
+    )
+    waiting = []  # (index, info) of the views measured together next
+
+    def measure_waiting() -> None:
+        if len(waiting) == 1:
+            accumulator.add(waiting[0][1], maps[waiting[0][0]])
+        elif waiting:
+            infos = [info for _, info in waiting]
+            gaussian_complexity_views(
+                infos, [maps[index] for index, _ in waiting], accumulator.total, accumulator.w_max
+            )
+        waiting.clear()
 
     def started(position: int):
         return bins(indices[position]) if position < len(indices) else None
@@ -351,6 +471,14 @@ def _measure_views(bins, maps, indices, num_gaussians, device, options):
         if getattr(info, "pending", None) is not None:
             slotted.append(info.pending_flags)
         accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
-        accumulator.add(info, maps[index])
+        if together:
+            if waiting and (info.width, info.height) != (waiting[0][1].width, waiting[0][1].height):
+                measure_waiting()  # one launch takes views of one size
+            waiting.append((index, info))
+            if len(waiting) >= views_per_launch(info):
+                measure_waiting()
+        else:
+            accumulator.add(info, maps[index])
         current = following if pending else started(position + 1)
+    measure_waiting()
     return accumulator, slotted

@@ -11,6 +11,7 @@ from cdcgs.complexity import (
     complexity_map,
     complexity_over_views,
     gaussian_complexity,
+    gaussian_complexity_views,
     high_frequency,
     luma,
 )
@@ -288,21 +289,28 @@ class _Maps(list):
 
 
 @pytest.mark.parametrize(
-    "options, ranks",
+    "options, ranks, together",
     [
-        ({}, None),
-        ({"pixel_aggregation": "mean", "view_aggregation": "mean"}, None),
-        ({"pixel_aggregation": "max", "view_aggregation": "mean"}, (1, 2)),
-        ({"racy_max": True, "racy_seed": 7}, None),
-        ({"racy_max": True, "racy_seed": 7}, (0, 2)),
+        ({}, None, 8),
+        ({}, None, 2),
+        ({}, (1, 2), 8),
+        ({"w_max": "weight"}, None, 3),
+        ({"pixel_aggregation": "mean", "view_aggregation": "mean"}, None, 1),
+        ({"pixel_aggregation": "max", "view_aggregation": "mean"}, (1, 2), 1),
+        ({"racy_max": True, "racy_seed": 7}, None, 1),
+        ({"racy_max": True, "racy_seed": 7}, (0, 2), 1),
     ],
 )
-def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device, options, ranks):
+def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device, options, ranks, together, monkeypatch):
     """complexity_over_views with start_bin_view's pending lists: view i + 1 is started before
-    view i is finished and measured (so that the GPU projects and counts it while the host waits
-    for view i's count); with finished lists, one view at a time. Γ is that of the loop before
-    the change (bin_view, then add, each view seeded with its own index), bit for bit but for the
-    sums' atomic adds on CUDA, for each aggregation, the racy emulation and a rank's share."""
+    view i is finished (so that the GPU projects and counts it while the host waits for view i's
+    count), and the views are measured ``together`` at a time once the last of them is finished
+    (the exact max over pixels and views: GAMMA_VIEWS_PER_LAUNCH of them in one launch; the other
+    aggregations and the racy emulation one at a time); with finished lists, bins and maps in
+    the same groups. Γ is that of the loop before the change (bin_view, then add, each view
+    seeded with its own index), bit for bit but for the sums' atomic adds on CUDA, for each
+    aggregation, the racy emulation and a rank's share."""
+    monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_PER_LAUNCH", max(together, 2))
     scene = make_scene(200, 40, 30, sh_degree=0, seed=6)
     tensors = [t.to(device) for t in scene.tensors()[:4]]
     eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5), (0.0, 1.2, -5.0), (-0.8, 0.5, -4.8)]
@@ -332,11 +340,15 @@ def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device,
             return info
 
     got = complexity_over_views(Recorded, _Maps(maps, events), 200, device, ranks=stub, **options)
+    groups = [mine[i : i + together] for i in range(0, len(mine), together)]
     expected_order = [("start", mine[0])]
-    for position, index in enumerate(mine):
-        if position + 1 < len(mine):
-            expected_order.append(("start", mine[position + 1]))
-        expected_order += [("finish", index), ("map", index)]
+    for group in groups:
+        for index in group:
+            position = mine.index(index)
+            if position + 1 < len(mine):
+                expected_order.append(("start", mine[position + 1]))
+            expected_order.append(("finish", index))
+        expected_order += [("map", index) for index in group]
     assert events == expected_order
 
     events.clear()
@@ -346,7 +358,7 @@ def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device,
         return bin_view(*tensors, camera=cameras[index])
 
     one_at_a_time = complexity_over_views(finished, _Maps(maps, events), 200, device, ranks=stub, **options)
-    assert events == [event for index in mine for event in (("bins", index), ("map", index))]
+    assert events == [event for group in groups for event in [("bins", i) for i in group] + [("map", i) for i in group]]
 
     # The loop before the change, written out.
     seed = options.get("racy_seed", 0)
@@ -361,6 +373,50 @@ def test_the_gamma_pass_queues_the_next_view_before_it_finishes_this_one(device,
     rtol = 1e-5 if sums and device == "cuda" else 0
     torch.testing.assert_close(got, expected, atol=0, rtol=rtol)
     torch.testing.assert_close(one_at_a_time, expected, atol=0, rtol=rtol)
+
+
+@pytest.mark.parametrize("w_max", ["alpha", "weight"])
+def test_views_measured_in_one_launch_give_the_max_of_one_launch_each(device, w_max, monkeypatch):
+    """gaussian_complexity_views (several views' tiles in one launch, their maxima taken into one
+    running max) against gaussian_complexity of each view in turn, bit for bit: five views, two of
+    another image size (so that complexity_over_views launches them apart), Gaussians that some
+    views do not see. With GAMMA_VIEWS_BYTES too small for two views, one view a launch, the same
+    Γ. Mismatched views, maps or ``max_into`` are refused."""
+    scene = make_scene(300, 40, 30, sh_degree=0, seed=8)
+    tensors = [t.to(device) for t in scene.tensors()[:4]]
+    eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5), (0.0, 1.2, -5.0), (-2.5, 0.5, -3.0)]
+    sizes = [(40, 30), (40, 30), (36, 33), (36, 33), (40, 30)]
+    cameras = [prepare_camera(look_at(eye, (0.0, 0.0, 0.0)), scene.K, w, h) for eye, (w, h) in zip(eyes, sizes)]
+    g = torch.Generator().manual_seed(8)
+    maps = [(torch.rand(h, w, generator=g) * 255).to(torch.uint8).to(device) for w, h in sizes]
+    infos = [bin_view(*tensors, camera=camera) for camera in cameras]
+    views_max = []
+    for info, hf_map in zip(infos, maps):
+        alone, _, _ = gaussian_complexity(info, hf_map, w_max=w_max, sums=False)
+        views_max.append(alone.cpu())
+    expected = torch.stack(views_max).amax(0)
+    assert (expected > 0).sum() > 100
+    assert ((torch.stack(views_max) > 0).sum(0) < len(eyes)).sum() > 20  # some views miss some Gaussians
+    start = torch.rand(300, generator=g).to(device) * 0.2  # a running max from earlier views
+    into = start.clone()
+    assert gaussian_complexity_views(infos[:2] + infos[4:], [maps[0], maps[1], maps[4]], into, w_max) is into
+    mine = torch.maximum(start.cpu(), torch.stack([views_max[0], views_max[1], views_max[4]]).amax(0))
+    torch.testing.assert_close(into.cpu(), mine, atol=0, rtol=0)
+    for together in (8, 2):
+        monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_PER_LAUNCH", together)
+        got = complexity_over_views(lambda i: infos[i], maps, 300, device, w_max=w_max)
+        torch.testing.assert_close(got.cpu(), expected, atol=0, rtol=0)
+    monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_BYTES", 1)
+    got = complexity_over_views(lambda i: infos[i], maps, 300, device, w_max=w_max)
+    torch.testing.assert_close(got.cpu(), expected, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="one image size"):
+        gaussian_complexity_views(infos[1:3], maps[1:3], start.clone())
+    with pytest.raises(ValueError, match="as many maps"):
+        gaussian_complexity_views(infos[:2], maps[:1], start.clone())
+    with pytest.raises(ValueError, match="hf_map must be a uint8"):
+        gaussian_complexity_views(infos[:2], [maps[0], maps[2]], start.clone())
+    with pytest.raises(ValueError, match="max_into"):
+        gaussian_complexity_views(infos[:2], maps[:2], torch.zeros(299, device=device))
 
 
 def test_the_gamma_pass_bins_into_slots_reads_once_and_counts_again_after_an_overflow(device):

@@ -31,6 +31,7 @@ PUBLIC_KERNEL_API = {
     "blend_backward_kernel",
     "blend_backward_lean_kernel",
     "complexity_kernel",
+    "complexity_views_kernel",
     "knn_search",
     "ssim_l1_forward_rows_kernel",
     "ssim_l1_forward_kernel",

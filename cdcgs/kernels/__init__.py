@@ -2,7 +2,8 @@
 
 What a ``wp.launch`` user needs: the camera (``make_camera``), the projection and SH colour kernels
 and their adjoints, ``bin_gaussians`` (the tiles' depth-sorted lists), the blend kernels (launch
-with ``dim=tiles_x * tiles_y * BLOCK_SIZE``, ``block_dim=BLOCK_SIZE``), the CDC-GS complexity pass,
+with ``dim=tiles_x * tiles_y * BLOCK_SIZE``, ``block_dim=BLOCK_SIZE``), the CDC-GS complexity pass (one
+view a launch, or several: ``complexity_views_kernel``),
 the exact KNN (``knn_search``), the training loss, L1 + D-SSIM, fused (``ssim_l1_*``: two
 separable passes forward, two backward), and Adam on every row or on selected ones
 (``fused_adam_kernel``: every parameter in one launch, ``adam_quads`` threads a parameter;
@@ -18,7 +19,13 @@ callers that manage their own buffers; the submodules (``projection``, ``binning
 from ._constants import BLOCK_SIZE, TILE_SIZE
 from .adam import adam_quads, fused_adam_kernel, selective_adam_kernel
 from .binning import TileBins, bin_gaussians
-from .blend import blend_backward_kernel, blend_backward_lean_kernel, blend_forward_kernel, complexity_kernel
+from .blend import (
+    blend_backward_kernel,
+    blend_backward_lean_kernel,
+    blend_forward_kernel,
+    complexity_kernel,
+    complexity_views_kernel,
+)
 from .knn import knn_search
 from .loss import (
     ssim_l1_backward_kernel,
@@ -51,6 +58,7 @@ __all__ = [
     "blend_backward_lean_kernel",
     "blend_forward_kernel",
     "complexity_kernel",
+    "complexity_views_kernel",
     "fused_adam_kernel",
     "knn_search",
     "make_camera",

@@ -47,6 +47,7 @@ __all__ = [
     "MAX_EXACT",
     "MAX_RACY_KEEP",
     "MAX_RACY_RANK",
+    "VIEW_TABLE_COLUMNS",
     "W_MAX_ALPHA",
     "W_MAX_WEIGHT",
     "blend_backward_kernel",
@@ -56,6 +57,7 @@ __all__ = [
     "blend_forward_chunked_kernel",
     "blend_forward_kernel",
     "complexity_kernel",
+    "complexity_views_kernel",
     "walk_chunks_kernel",
 ]
 
@@ -690,8 +692,9 @@ def w_max_alpha_kernel(
         k += BLOCK_SIZE
 
 
-@wp.kernel(enable_backward=False)
-def complexity_kernel(
+@wp.func
+def complexity_pixel(
+    tid: int,
     tile_ranges: wp.array2d(dtype=wp.int32),
     sorted_gauss_ids: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
@@ -711,31 +714,8 @@ def complexity_kernel(
     sum_out: wp.array(dtype=float),
     count_out: wp.array(dtype=wp.int32),
 ):
-    """CDC-GS complexity of each Gaussian in one view: max (and sum, count) over the pixels it
-    composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
-
-    Two passes over each pixel's list, in compositing order, with the forward blend's alpha and
-    transmittance rules: a pixel stops before the Gaussian that would take its transmittance
-    below MIN_TRANSMITTANCE, as the blend does, so the kernel needs no forward render, only the
-    tile lists. The lists are walked in batches of BLOCK_SIZE that the block stages in shared
-    memory on CUDA (as the forward blend does). The first pass finds w_max (``w_max_rule``:
-    W_MAX_WEIGHT the largest alpha * T up to the pixel's stop, W_MAX_ALPHA the largest alpha over
-    the whole tile list, both floored at 1e-4); a pixel leaves it once no later Gaussian can raise
-    w_max (alpha <= MAX_ALPHA * T), and under W_MAX_ALPHA skips a Gaussian whose opacity does
-    not exceed w_max (alpha <= opacity): both exact. The second combines the warp's contributions
-    per Gaussian in registers (one ``__reduce_max_sync`` on sm_80 and later), then on CUDA the
-    block's warps in shared memory (``batch_max``), and adds them with an exact atomic max once per
-    tile and Gaussian, and with ``sums`` non-zero
-    atomic sums and counts too (the mean aggregations read them; with ``sums`` 0 ``sum_out``
-    and ``count_out`` are left untouched). ``max_rule`` MAX_RACY_RANK writes, per entry of the
-    tile lists, the largest ``racy_key`` (with ``seed``) of the pixels that composite it into
-    ``keys`` (as long as ``sorted_gauss_ids``, filled with -1) and nothing else; MAX_RACY_KEEP
-    then takes into ``max_out`` only those pixels' values (sums and counts stay exact).
-    ``complexity_map`` holds HF in [0, 1] as uint8 (x 255). ``w_max_map``: empty, or every
-    pixel's w_max (``y * width + x``) found before (:func:`w_max_alpha_kernel`), which replaces the
-    first pass.
-    """
-    tid = wp.tid()
+    """The work of thread ``tid`` of :func:`complexity_kernel` (its pixel of one view), with the
+    kernel's arguments: the one body of that kernel and of :func:`complexity_views_kernel`."""
     pix = tile_pixel(tid, tiles_x)
     x = pix[0]
     y = pix[1]
@@ -873,3 +853,134 @@ def complexity_kernel(
         elif stopped != 0:
             break
         batch += BLOCK_SIZE
+
+
+@wp.kernel(enable_backward=False)
+def complexity_kernel(
+    tile_ranges: wp.array2d(dtype=wp.int32),
+    sorted_gauss_ids: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    complexity_map: wp.array2d(dtype=wp.uint8),
+    width: int,
+    height: int,
+    tiles_x: int,
+    w_max_rule: int,
+    w_max_map: wp.array(dtype=float),
+    max_rule: int,
+    seed: int,
+    sums: int,
+    keys: wp.array(dtype=wp.int32),
+    max_out: wp.array(dtype=float),
+    sum_out: wp.array(dtype=float),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """CDC-GS complexity of each Gaussian in one view: max (and sum, count) over the pixels it
+    composites of HF(p) * w_i(p) / w_max(p), weights w = alpha * T floored at 1e-4.
+
+    Two passes over each pixel's list, in compositing order, with the forward blend's alpha and
+    transmittance rules: a pixel stops before the Gaussian that would take its transmittance
+    below MIN_TRANSMITTANCE, as the blend does, so the kernel needs no forward render, only the
+    tile lists. The lists are walked in batches of BLOCK_SIZE that the block stages in shared
+    memory on CUDA (as the forward blend does). The first pass finds w_max (``w_max_rule``:
+    W_MAX_WEIGHT the largest alpha * T up to the pixel's stop, W_MAX_ALPHA the largest alpha over
+    the whole tile list, both floored at 1e-4); a pixel leaves it once no later Gaussian can raise
+    w_max (alpha <= MAX_ALPHA * T), and under W_MAX_ALPHA skips a Gaussian whose opacity does
+    not exceed w_max (alpha <= opacity): both exact. The second combines the warp's contributions
+    per Gaussian in registers (one ``__reduce_max_sync`` on sm_80 and later), then on CUDA the
+    block's warps in shared memory (``batch_max``), and adds them with an exact atomic max once per
+    tile and Gaussian, and with ``sums`` non-zero
+    atomic sums and counts too (the mean aggregations read them; with ``sums`` 0 ``sum_out``
+    and ``count_out`` are left untouched). ``max_rule`` MAX_RACY_RANK writes, per entry of the
+    tile lists, the largest ``racy_key`` (with ``seed``) of the pixels that composite it into
+    ``keys`` (as long as ``sorted_gauss_ids``, filled with -1) and nothing else; MAX_RACY_KEEP
+    then takes into ``max_out`` only those pixels' values (sums and counts stay exact).
+    ``complexity_map`` holds HF in [0, 1] as uint8 (x 255). ``w_max_map``: empty, or every
+    pixel's w_max (``y * width + x``) found before (:func:`w_max_alpha_kernel`), which replaces the
+    first pass.
+    """
+    complexity_pixel(
+        wp.tid(),
+        tile_ranges,
+        sorted_gauss_ids,
+        means2d,
+        conics,
+        opacities,
+        complexity_map,
+        width,
+        height,
+        tiles_x,
+        w_max_rule,
+        w_max_map,
+        max_rule,
+        seed,
+        sums,
+        keys,
+        max_out,
+        sum_out,
+        count_out,
+    )
+
+
+# The columns of complexity_views_kernel's table: the addresses of a view's tile ranges, tile
+# lists, 2D means, conics, opacities and complexity map, then the length of its tile lists.
+VIEW_TABLE_COLUMNS = 7
+
+
+@wp.kernel(enable_backward=False)
+def complexity_views_kernel(
+    views: wp.array2d(dtype=wp.int64),
+    num_gaussians: int,
+    width: int,
+    height: int,
+    tiles_x: int,
+    tiles_y: int,
+    w_max_rule: int,
+    no_w_max_map: wp.array(dtype=float),
+    no_keys: wp.array(dtype=wp.int32),
+    max_out: wp.array(dtype=float),
+    no_sums: wp.array(dtype=float),
+    no_counts: wp.array(dtype=wp.int32),
+):
+    """:func:`complexity_kernel`'s exact max (``max_rule`` MAX_EXACT, no sums, w_max found by the
+    walk) of several views of one image size in one launch: ``dim`` = views * tiles * BLOCK_SIZE,
+    the blocks of view 0's tiles first. Row ``v`` of ``views`` [V, VIEW_TABLE_COLUMNS] holds the
+    addresses of view v's ``tile_ranges`` [tiles, 2] int32, ``sorted_gauss_ids`` int32 (its length
+    in column 6), ``means2d`` [N] vec2, ``conics`` [N] vec3, ``opacities`` [N] float32 and
+    ``complexity_map`` [height, width] uint8, as ``complexity_kernel`` takes them (N =
+    ``num_gaussians``, the same Gaussians in every view). Every view's maxima go into ``max_out``
+    [N], a maximum over the views as the views one launch at a time give it, bit for bit (a max
+    does not depend on the order). A launch of one view keeps the SMs that its last, longest tile
+    lists leave idle waiting; here the next views' tiles take them. The ``no_`` arrays: empty
+    (length 0, and 1 for the sums and counts), as complexity_kernel's unused arguments."""
+    tid = wp.tid()
+    per_view = tiles_x * tiles_y * BLOCK_SIZE
+    v = tid // per_view
+    tile_ranges = wp.array(ptr=wp.uint64(views[v, 0]), shape=(tiles_x * tiles_y, 2), dtype=wp.int32)
+    sorted_gauss_ids = wp.array(ptr=wp.uint64(views[v, 1]), shape=(int(views[v, 6]),), dtype=wp.int32)
+    means2d = wp.array(ptr=wp.uint64(views[v, 2]), shape=(num_gaussians,), dtype=wp.vec2)
+    conics = wp.array(ptr=wp.uint64(views[v, 3]), shape=(num_gaussians,), dtype=wp.vec3)
+    opacities = wp.array(ptr=wp.uint64(views[v, 4]), shape=(num_gaussians,), dtype=float)
+    complexity_map = wp.array(ptr=wp.uint64(views[v, 5]), shape=(height, width), dtype=wp.uint8)
+    complexity_pixel(
+        tid - v * per_view,
+        tile_ranges,
+        sorted_gauss_ids,
+        means2d,
+        conics,
+        opacities,
+        complexity_map,
+        width,
+        height,
+        tiles_x,
+        w_max_rule,
+        no_w_max_map,
+        MAX_EXACT,
+        0,
+        0,
+        no_keys,
+        max_out,
+        no_sums,
+        no_counts,
+    )

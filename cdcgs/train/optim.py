@@ -20,7 +20,7 @@ import torch
 import warp as wp
 from torch.autograd.graph import increment_version
 
-from .._interop import halt_arg, launch, warp_scope, wp_arg
+from .._interop import halt_arg, launch, small_table, warp_scope, wp_arg
 from ..kernels.adam import adam_quads, fused_adam_kernel
 
 __all__ = ["FusedAdam", "SelectiveAdam"]
@@ -71,7 +71,10 @@ class FusedAdam(torch.optim.Optimizer):
             for addresses, count, width, _ in batch:
                 table.append([*addresses, start, count, width])
                 start += adam_quads(count)
-            tables = [_on(device, table, torch.int64), _on(device, [entry[3] for entry in batch], torch.float32)]
+            tables = [
+                small_table(device, table, torch.int64),
+                small_table(device, [e[3] for e in batch], torch.float32),
+            ]
             launch_adam(tables[0], tables[1], start, selected, halt)
         for _, p in updated:  # the kernel wrote through addresses: tell torch, as an in-place op would
             increment_version(p)
@@ -211,11 +214,3 @@ def _launches(parameters: list) -> list[list]:
         batches[-1].append(entry)
         total += threads
     return [batch for batch in batches if batch]
-
-
-def _on(device: torch.device, rows: list, dtype: torch.dtype) -> torch.Tensor:
-    """A small table on ``device``; on CUDA copied from pinned memory without waiting (torch's
-    pinned allocator keeps the host block until the copy has run)."""
-    if device.type != "cuda":
-        return torch.tensor(rows, dtype=dtype)
-    return torch.tensor(rows, dtype=dtype, pin_memory=True).to(device, non_blocking=True)
