@@ -294,7 +294,7 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     maps = ComplexityMaps(trainer.scene.train[:views], "dwt", device)
     maps.all()
-    ways = {"pipelined": trainer._bins, "one at a time": lambda i: _finished(trainer._bins(i))}
+    ways = {"pipelined": trainer._bins, "one at a time": lambda i, counted=False: _finished(trainer._bins(i, counted))}
     for bins in ways.values():  # warm-up
         complexity_over_views(bins, maps, trainer.model.num, device)
     sync()
@@ -326,7 +326,8 @@ def complexity_pass(trainer: Trainer, views: int) -> dict:
 
 def _finished(bins):
     """A view's lists finished: pending ones (``start_bin_view``) waited for; those binned into
-    slots (a training that replays its steps) are finished already."""
+    slots (a training that replays its steps) are finished already, so under ``--cuda-graph`` the
+    two ways of the Γ pass are the same."""
     return bins.finish() if hasattr(bins, "finish") else bins
 
 

@@ -33,7 +33,7 @@ from .kernels.blend import (
     complexity_views_kernel,
     w_max_alpha_kernel,
 )
-from .render import any_overflowed
+from .render import overflowed_renders
 
 __all__ = [
     "AGGREGATIONS",
@@ -212,7 +212,10 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
     launch: ``max_into`` ends as the max of itself and every view's, the same bits as one call of
     :func:`gaussian_complexity` per view with ``max_into`` (a max does not depend on the order).
     ``infos``: their :class:`cdcgs.render.RasterizeInfo` (binned; a render's or ``bin_view``'s),
-    ``hf_maps`` their views' [H, W] uint8 maps. Returns ``max_into``."""
+    ``hf_maps`` their views' [H, W] uint8 maps. Returns ``max_into``. A view binned into slots
+    whose pairs overflowed them (its ``pending`` overflow flag, read on the device) adds nothing:
+    its lists are incomplete, and the caller measures it again from counted lists
+    (:func:`complexity_over_views` does)."""
     if not infos or len(infos) != len(hf_maps):
         raise ValueError(
             f"gaussian_complexity_views needs as many maps as views (at least one), got {len(infos)} and {len(hf_maps)}"
@@ -224,15 +227,17 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
     device = first.means2d.device
     if max_into.shape != (n,) or max_into.dtype != torch.float32 or max_into.device != device:
         raise ValueError(
-            f"max_into must be a float32 [{n}] tensor on {device}, got {max_into.dtype} {list(max_into.shape)}"
+            f"max_into must be a float32 [{n}] tensor on {device}, "
+            f"got {max_into.dtype} {list(max_into.shape)} on {max_into.device}"
         )
     held = []  # the launch reads them through their addresses: alive until it is queued
     rows = []
     for info, hf_map in zip(infos, hf_maps):
         if (info.width, info.height, info.means2d.shape[0], info.means2d.device) != (width, height, n, device):
             raise ValueError(
-                f"gaussian_complexity_views measures views of one image size and the same Gaussians: a "
-                f"{info.width} x {info.height} view of {info.means2d.shape[0]} beside a {width} x {height} one of {n}"
+                f"gaussian_complexity_views measures views of one image size and the same Gaussians on one "
+                f"device: a {info.width} x {info.height} view of {info.means2d.shape[0]} on {info.means2d.device} "
+                f"beside a {width} x {height} one of {n} on {device}"
             )
         if hf_map.shape != (height, width) or hf_map.dtype != torch.uint8:
             raise ValueError(f"hf_map must be a uint8 [{height}, {width}] map, got {hf_map.dtype} {list(hf_map.shape)}")
@@ -245,12 +250,16 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
             hf_map.to(device).contiguous(),
         ]
         held += tensors
-        rows.append([t.data_ptr() for t in tensors] + [tensors[1].numel()])
+        pending = getattr(info, "pending", None)  # [flags..., overflow, count] of lists binned into slots
+        overflow = [0, 0] if pending is None else [pending.data_ptr(), pending.numel() - 2]
+        rows.append([t.data_ptr() for t in tensors] + [tensors[1].numel(), *overflow])
     assert len(rows[0]) == VIEW_TABLE_COLUMNS
     table = small_table(device, rows, torch.int64)
     held.append(table)
     tiles_x, tiles_y = first.tiles_x, first.tiles_y
-    empty = torch.zeros(0, device=device)
+    # the kernel's unused arguments: no w_max map, no racy keys, no sums or counts
+    unused = [torch.zeros(size, dtype=dtype, device=device) for size, dtype in _UNUSED_VIEWS_ARGUMENTS]
+    held += unused
     with warp_scope(device):
         launch(
             complexity_views_kernel,
@@ -263,17 +272,17 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
                 tiles_x,
                 tiles_y,
                 W_MAX_ALPHA if w_max == "alpha" else W_MAX_WEIGHT,
-                wp_arg(empty, wp.float32),
-                wp_arg(torch.zeros(0, dtype=torch.int32, device=device), wp.int32),
+                wp_arg(unused[0], wp.float32),
+                wp_arg(unused[1], wp.int32),
             ],
-            outputs=[
-                wp_arg(max_into, wp.float32),
-                wp_arg(torch.zeros(1, device=device), wp.float32),
-                wp_arg(torch.zeros(1, dtype=torch.int32, device=device), wp.int32),
-            ],
+            outputs=[wp_arg(max_into, wp.float32), wp_arg(unused[2], wp.float32), wp_arg(unused[3], wp.int32)],
             block_dim=BLOCK_SIZE,
         )
     return max_into
+
+
+# (size, dtype) of complexity_views_kernel's unused arrays: w_max map, keys, sums, counts
+_UNUSED_VIEWS_ARGUMENTS = ((0, torch.float32), (0, torch.int32), (1, torch.float32), (1, torch.int32))
 
 
 def views_per_launch(info) -> int:
@@ -402,15 +411,18 @@ def complexity_over_views(
     colours and the blend that Γ does not read, or a render's info), or a
     :class:`cdcgs.render.PendingBins` that gives it (:func:`cdcgs.render.start_bin_view`). With
     pending bins the next view is started before this one is finished and measured, so that the
-    GPU projects and counts it while the host waits for this one's intersection count (two views'
-    projections alive at once); with finished ones, one view at a time. The same Γ either way:
-    the views are measured in the same order.
+    GPU projects and counts it while the host waits for this one's intersection count; with
+    finished ones, one view at a time. Under the exact max the views measured in one launch
+    (:func:`views_per_launch`) are alive together, with the next one's projection. The same Γ
+    either way.
 
     An info binned into slots (``bin_view(..., capacity=...)``, its ``pending`` flags set) reads
-    nothing back: the flags of all such views are read once, after the last view. When any
-    view's pairs overflowed its slots, its lists were incomplete and the pass is taken again with
-    ``bins(i, counted=True)``, which must read every count; an input that held NaN or inf raises
-    NonFiniteError, as a counted view does at once.
+    nothing back: the flags of all such views are read once, after the last view. A view whose
+    pairs overflowed its slots has incomplete lists: under the exact max over pixels and views (the
+    default, with the walk's w_max) it added nothing, and it alone is measured again from
+    ``bins(i, counted=True)``, which reads its count; under the other aggregations its values are
+    in the sums already, and the whole pass is taken again from counted lists. An input that held
+    NaN or inf raises NonFiniteError, as a counted view does at once.
 
     ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
     ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
@@ -420,10 +432,16 @@ def complexity_over_views(
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     indices = list(range(rank, len(maps), world))
     accumulator, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options)
-    if slotted and any_overflowed(slotted):  # one read for the pass
-        accumulator, _ = _measure_views(
-            lambda index: bins(index, counted=True), maps, indices, num_gaussians, device, options
-        )
+    overflowed = overflowed_renders([flags for _, flags in slotted]) if slotted else []  # one read for the pass
+
+    def counted(index: int):
+        return bins(index, counted=True)
+
+    if overflowed and _together(accumulator):  # the views that overflowed added nothing: they alone again
+        again = [slotted[position][0] for position in overflowed]
+        _measure_views(counted, maps, again, num_gaussians, device, options, accumulator)
+    elif overflowed:  # their incomplete lists are in the sums: the whole pass again
+        accumulator, _ = _measure_views(counted, maps, indices, num_gaussians, device, options)
     if world > 1:
         if accumulator.view_aggregation == "max":
             ranks.all_reduce_(accumulator.total, "max")
@@ -433,31 +451,34 @@ def complexity_over_views(
     return accumulator.result()
 
 
-def _measure_views(bins, maps, indices, num_gaussians, device, options):
-    """(the accumulator of ``indices``' views, the ``pending_flags`` of those binned into slots).
-    Where the accumulator takes the exact max over pixels and views with the walk's w_max, the
-    views are measured up to :func:`views_per_launch` at a time (:func:`gaussian_complexity_views`),
-    else one at a time; the same Γ either way."""
-    accumulator = ViewComplexity(num_gaussians, device, **options)
-    seed = accumulator.views_added
-    slotted = []
-    together = (
+def _together(accumulator: ViewComplexity) -> bool:
+    """Whether a pass into ``accumulator`` measures its views with :func:`gaussian_complexity_views`:
+    the exact max over pixels and views, with the walk's w_max."""
+    return (
         accumulator.pixel_aggregation == "max"
         and accumulator.view_aggregation == "max"
         and not accumulator.racy_max
         and (accumulator.w_max == "weight" or W_MAX_PASS == "walk")
-        and GAMMA_VIEWS_PER_LAUNCH > 1
     )
+
+
+def _measure_views(bins, maps, indices, num_gaussians, device, options, accumulator=None):
+    """(the accumulator of ``indices``' views, (index, ``pending_flags``) of those binned into
+    slots). Where the accumulator takes the exact max over pixels and views with the walk's w_max
+    (:func:`_together`), the views are measured up to :func:`views_per_launch` at a time
+    (:func:`gaussian_complexity_views`, where a view whose slots overflowed adds nothing), else one
+    at a time; the same Γ either way. ``accumulator``: add to this one instead of a new one."""
+    accumulator = accumulator or ViewComplexity(num_gaussians, device, **options)
+    seed = accumulator.views_added
+    slotted = []
+    together = _together(accumulator)
     waiting = []  # (index, info) of the views measured together next
 
     def measure_waiting() -> None:
-        if len(waiting) == 1:
-            accumulator.add(waiting[0][1], maps[waiting[0][0]])
-        elif waiting:
+        if waiting:
             infos = [info for _, info in waiting]
-            gaussian_complexity_views(
-                infos, [maps[index] for index, _ in waiting], accumulator.total, accumulator.w_max
-            )
+            maps_of = [maps[index] for index, _ in waiting]
+            gaussian_complexity_views(infos, maps_of, accumulator.total, accumulator.w_max)
         waiting.clear()
 
     def started(position: int):
@@ -469,8 +490,9 @@ def _measure_views(bins, maps, indices, num_gaussians, device, options):
         following = started(position + 1) if pending else None  # queued before this view's count is read
         info = current.finish() if pending else current
         if getattr(info, "pending", None) is not None:
-            slotted.append(info.pending_flags)
-        accumulator.views_added = seed + index  # the racy emulation's draw of this view, wherever it runs
+            slotted.append((index, info.pending_flags))
+        # the racy emulation's draw of this view, wherever it runs (unused by the exact max)
+        accumulator.views_added = seed + index
         if together:
             if waiting and (info.width, info.height) != (waiting[0][1].width, waiting[0][1].height):
                 measure_waiting()  # one launch takes views of one size

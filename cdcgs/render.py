@@ -54,6 +54,7 @@ __all__ = [
     "RasterizeInfo",
     "any_overflowed",
     "bin_view",
+    "overflowed_renders",
     "prepare_camera",
     "rasterize",
     "sh_adjoint",
@@ -346,9 +347,15 @@ def any_overflowed(flags: list[tuple[torch.Tensor, tuple]]) -> bool:
     """The :attr:`RasterizeInfo.pending_flags` of several renders with ``capacity``, read in one
     synchronisation (on the current stream): NonFiniteError naming the first input that held NaN
     or inf, else whether any render's pairs overflowed its slots."""
+    return bool(overflowed_renders(flags))
+
+
+def overflowed_renders(flags: list[tuple[torch.Tensor, tuple]]) -> list[int]:
+    """As :func:`any_overflowed`, read in one synchronisation: the positions in ``flags`` of the
+    renders whose pairs overflowed their slots (after NonFiniteError for any that met NaN or inf)."""
     rows = torch.stack([pending for pending, _ in flags]).tolist()
     outcomes = [_pending_outcome(names, row) for row, (_, names) in zip(rows, flags)]  # every NaN first
-    return any(overflowed for overflowed, _ in outcomes)
+    return [position for position, (overflowed, _) in enumerate(outcomes) if overflowed]
 
 
 def _pending_outcome(names, values) -> tuple[bool, int]:

@@ -381,7 +381,8 @@ def test_views_measured_in_one_launch_give_the_max_of_one_launch_each(device, w_
     running max) against gaussian_complexity of each view in turn, bit for bit: five views, two of
     another image size (so that complexity_over_views launches them apart), Gaussians that some
     views do not see. With GAMMA_VIEWS_BYTES too small for two views, one view a launch, the same
-    Γ. Mismatched views, maps or ``max_into`` are refused."""
+    Γ. A view binned into too few slots adds nothing (its overflow flag, on the device); into
+    enough, its own max. Mismatched views, maps or ``max_into`` are refused."""
     scene = make_scene(300, 40, 30, sh_degree=0, seed=8)
     tensors = [t.to(device) for t in scene.tensors()[:4]]
     eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5), (0.0, 1.2, -5.0), (-2.5, 0.5, -3.0)]
@@ -409,6 +410,19 @@ def test_views_measured_in_one_launch_give_the_max_of_one_launch_each(device, w_
     monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_BYTES", 1)
     got = complexity_over_views(lambda i: infos[i], maps, 300, device, w_max=w_max)
     torch.testing.assert_close(got.cpu(), expected, atol=0, rtol=0)
+    # A view binned into too few slots (its overflow flag set on the device) adds nothing.
+    short = bin_view(*tensors, camera=cameras[1], capacity=infos[1].num_intersections - 1)
+    untouched = gaussian_complexity_views([short], [maps[1]], start.clone(), w_max)
+    torch.testing.assert_close(untouched, start, atol=0, rtol=0)
+    beside = gaussian_complexity_views([infos[0], short], maps[:2], start.clone(), w_max)
+    torch.testing.assert_close(beside.cpu(), torch.maximum(start.cpu(), views_max[0]), atol=0, rtol=0)
+    fits = bin_view(*tensors, camera=cameras[1], capacity=infos[1].num_intersections)
+    torch.testing.assert_close(
+        gaussian_complexity_views([fits], [maps[1]], start.clone(), w_max).cpu(),
+        torch.maximum(start.cpu(), views_max[1]),
+        atol=0,
+        rtol=0,
+    )
     with pytest.raises(ValueError, match="one image size"):
         gaussian_complexity_views(infos[1:3], maps[1:3], start.clone())
     with pytest.raises(ValueError, match="as many maps"):
@@ -419,11 +433,14 @@ def test_views_measured_in_one_launch_give_the_max_of_one_launch_each(device, w_
         gaussian_complexity_views(infos[:2], maps[:2], torch.zeros(299, device=device))
 
 
-def test_the_gamma_pass_bins_into_slots_reads_once_and_counts_again_after_an_overflow(device):
+@pytest.mark.parametrize("options", [{}, {"w_max": "weight"}, {"pixel_aggregation": "mean"}, {"racy_max": True}])
+def test_the_gamma_pass_bins_into_slots_reads_once_and_counts_again_after_an_overflow(device, options):
     """Views binned into slots (bin_view(capacity=...)): the same lists and Γ as counted ones,
     nothing read back until the pass's end. When one view's slots are too few, its lists are
-    incomplete and the pass is taken again with bins(i, counted=True): the counted Γ again. NaN in
-    an input raises NonFiniteError at the end of the pass; a capacity out of range is refused."""
+    incomplete: under the exact max over pixels and views that view adds nothing and it alone is
+    measured again with bins(i, counted=True); under the other aggregations (its values in the
+    sums already) the whole pass is taken again so. Either way the counted Γ. NaN in an input
+    raises NonFiniteError at the end of the pass; a capacity out of range is refused."""
     scene = make_scene(200, 40, 30, sh_degree=0, seed=6)
     tensors = [t.to(device) for t in scene.tensors()[:4]]
     eyes = [(0.3, -0.4, -5.0), (1.5, 0.2, -4.5), (-1.0, -1.0, -5.5)]
@@ -432,8 +449,9 @@ def test_the_gamma_pass_bins_into_slots_reads_once_and_counts_again_after_an_ove
     maps = [(torch.rand(30, 40, generator=g) * 255).to(torch.uint8).to(device) for _ in eyes]
     counts = [bin_view(*tensors, camera=camera).num_intersections for camera in cameras]
     assert min(counts) > 100
-    expected = complexity_over_views(lambda i: bin_view(*tensors, camera=cameras[i]), maps, 200, device)
+    expected = complexity_over_views(lambda i: bin_view(*tensors, camera=cameras[i]), maps, 200, device, **options)
     assert (expected > 0).sum() > 30
+    alone = options in ({}, {"w_max": "weight"})  # the exact max: an overflowed view measured again alone
 
     def slotted(slots, inputs=tensors):
         calls = []
@@ -452,16 +470,22 @@ def test_the_gamma_pass_bins_into_slots_reads_once_and_counts_again_after_an_ove
 
         return bins, calls
 
+    rtol = 1e-5 if options.get("pixel_aggregation") == "mean" and device == "cuda" else 0  # atomic sums
     bins, calls = slotted([count + 7 for count in counts])
-    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device), expected, atol=0, rtol=0)
+    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device, **options), expected, atol=0, rtol=rtol)
     assert calls == [(0, False), (1, False), (2, False)]
     bins, calls = slotted([counts[0], counts[1] - 1, counts[2]])  # view 1 overflows by one pair
-    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device), expected, atol=0, rtol=0)
-    assert calls == [(0, False), (1, False), (2, False), (0, True), (1, True), (2, True)]
+    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device, **options), expected, atol=0, rtol=rtol)
+    again = [(1, True)] if alone else [(0, True), (1, True), (2, True)]
+    assert calls == [(0, False), (1, False), (2, False), *again]
+    bins, calls = slotted([counts[0] - 1, counts[1], counts[2] - 1])  # views 0 and 2
+    torch.testing.assert_close(complexity_over_views(bins, maps, 200, device, **options), expected, atol=0, rtol=rtol)
+    again = [(0, True), (2, True)] if alone else [(0, True), (1, True), (2, True)]
+    assert calls == [(0, False), (1, False), (2, False), *again]
     bad = [t.clone() for t in tensors]
     bad[0][5, 1] = float("nan")
     bins, _ = slotted(counts, bad)
     with pytest.raises(NonFiniteError, match="means"):
-        complexity_over_views(bins, maps, 200, device)
+        complexity_over_views(bins, maps, 200, device, **options)
     with pytest.raises(ValueError, match="capacity"):
         bin_view(*tensors, camera=cameras[0], capacity=0)

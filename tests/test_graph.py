@@ -103,7 +103,7 @@ def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monke
 def test_the_gamma_pass_bins_into_slots_and_counts_again_after_an_overflow(tiny_scene, tmp_path, monkeypatch, tight):
     """cdc's Γ passes in a replayed training bin each view whose count the training knows into
     slots, reading nothing back until the pass's end. With slots of exactly the last count some
-    views overflow and the pass is taken again, every count read. Either way the run is the one
+    views overflow and they are binned again, their counts read. Either way the run is the one
     that reads every count."""
     counted, _ = train_briefly(tiny_scene, tmp_path / "counted", "cdc", SHORT, background="white")
     if tight:

@@ -924,8 +924,9 @@ def complexity_kernel(
 
 
 # The columns of complexity_views_kernel's table: the addresses of a view's tile ranges, tile
-# lists, 2D means, conics, opacities and complexity map, then the length of its tile lists.
-VIEW_TABLE_COLUMNS = 7
+# lists, 2D means, conics, opacities and complexity map, the length of its tile lists, then the
+# address of its overflow flag (int32; 0: none) and that flag's index there.
+VIEW_TABLE_COLUMNS = 9
 
 
 @wp.kernel(enable_backward=False)
@@ -952,11 +953,19 @@ def complexity_views_kernel(
     ``num_gaussians``, the same Gaussians in every view). Every view's maxima go into ``max_out``
     [N], a maximum over the views as the views one launch at a time give it, bit for bit (a max
     does not depend on the order). A launch of one view keeps the SMs that its last, longest tile
-    lists leave idle waiting; here the next views' tiles take them. The ``no_`` arrays: empty
-    (length 0, and 1 for the sums and counts), as complexity_kernel's unused arguments."""
+    lists leave idle waiting; here the next views' tiles take them. A view binned into slots may
+    name its overflow flag (columns 7 and 8: the address of an int32 array and the flag's index in
+    it, as a render's ``pending`` holds it): when it is set, the view's lists are incomplete and
+    it adds nothing (its threads leave at once). The ``no_`` arrays: empty (length 0, and 1 for the
+    sums and counts), as complexity_kernel's unused arguments."""
     tid = wp.tid()
     per_view = tiles_x * tiles_y * BLOCK_SIZE
     v = tid // per_view
+    if views[v, 7] != wp.int64(0):  # the same for every thread of the view: none is left in a collective
+        flag = int(views[v, 8])
+        overflow = wp.array(ptr=wp.uint64(views[v, 7]), shape=(flag + 1,), dtype=wp.int32)
+        if overflow[flag] != 0:
+            return
     tile_ranges = wp.array(ptr=wp.uint64(views[v, 0]), shape=(tiles_x * tiles_y, 2), dtype=wp.int32)
     sorted_gauss_ids = wp.array(ptr=wp.uint64(views[v, 1]), shape=(int(views[v, 6]),), dtype=wp.int32)
     means2d = wp.array(ptr=wp.uint64(views[v, 2]), shape=(num_gaussians,), dtype=wp.vec2)

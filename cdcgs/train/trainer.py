@@ -485,7 +485,7 @@ class Trainer:
         knows the view's count (``--sync-free``, the CUDA graphs) and ``counted`` is False, as a
         :class:`cdcgs.render.RasterizeInfo` binned into the slots the lookahead gives it, which
         reads nothing back (:func:`cdcgs.complexity.complexity_over_views` reads the pass's flags
-        once, and takes the pass again counted when a view overflowed).
+        once, and bins the views that overflowed again, counted).
         A pass bins every training view of the same Gaussians: their scales and opacities are
         computed once for it, again only when a parameter has changed (another tensor, or an
         in-place update: torch's version counter; weak references, so that no old parameter is
