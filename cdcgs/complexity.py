@@ -230,8 +230,7 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
             f"max_into must be a float32 [{n}] tensor on {device}, "
             f"got {max_into.dtype} {list(max_into.shape)} on {max_into.device}"
         )
-    held = []  # the launch reads them through their addresses: alive until it is queued
-    rows = []
+    maps = []
     for info, hf_map in zip(infos, hf_maps):
         if (info.width, info.height, info.means2d.shape[0], info.means2d.device) != (width, height, n, device):
             raise ValueError(
@@ -241,34 +240,57 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
             )
         if hf_map.shape != (height, width) or hf_map.dtype != torch.uint8:
             raise ValueError(f"hf_map must be a uint8 [{height}, {width}] map, got {hf_map.dtype} {list(hf_map.shape)}")
+        maps.append(hf_map.to(device).contiguous())
+    rows, held = views_table_rows(infos, maps)
+    table = small_table(device, rows, torch.int64)
+    held.append(table)
+    launch_complexity_views(table, first, w_max, max_into)
+    return max_into
+
+
+def views_table_rows(infos: list, hf_maps: list[torch.Tensor] | None) -> tuple[list[list[int]], list[torch.Tensor]]:
+    """The rows of ``complexity_views_kernel``'s table for ``infos`` (checked by
+    :func:`gaussian_complexity_views`), with their maps' addresses (0 without ``hf_maps``: the
+    caller fills that column), and the tensors whose addresses they hold, to keep alive until the
+    launch is queued."""
+    held, rows = [], []
+    for position, info in enumerate(infos):
         tensors = [
             info.tile_ranges.contiguous(),
             info.sorted_gauss_ids.contiguous(),
             info.means2d.detach().contiguous(),
             info.conics.detach().contiguous(),
             info.opacities.detach().contiguous(),
-            hf_map.to(device).contiguous(),
         ]
         held += tensors
+        address = 0
+        if hf_maps is not None:
+            held.append(hf_maps[position])
+            address = hf_maps[position].data_ptr()
         pending = getattr(info, "pending", None)  # [flags..., overflow, count] of lists binned into slots
         overflow = [0, 0] if pending is None else [pending.data_ptr(), pending.numel() - 2]
-        rows.append([t.data_ptr() for t in tensors] + [tensors[1].numel(), *overflow])
-    assert len(rows[0]) == VIEW_TABLE_COLUMNS
-    table = small_table(device, rows, torch.int64)
-    held.append(table)
-    tiles_x, tiles_y = first.tiles_x, first.tiles_y
+        rows.append([t.data_ptr() for t in tensors] + [address, tensors[1].numel(), *overflow])
+    assert all(len(row) == VIEW_TABLE_COLUMNS for row in rows)
+    return rows, held
+
+
+def launch_complexity_views(table: torch.Tensor, like, w_max: str, max_into: torch.Tensor) -> None:
+    """One launch of ``complexity_views_kernel`` over the views of ``table`` (int64
+    [V, VIEW_TABLE_COLUMNS] on the device), views of the image size and Gaussians of the info
+    ``like``, their maxima into ``max_into``."""
+    device = max_into.device
+    tiles_x, tiles_y = like.tiles_x, like.tiles_y
     # the kernel's unused arguments: no w_max map, no racy keys, no sums or counts
     unused = [torch.zeros(size, dtype=dtype, device=device) for size, dtype in _UNUSED_VIEWS_ARGUMENTS]
-    held += unused
     with warp_scope(device):
         launch(
             complexity_views_kernel,
-            len(infos) * tiles_x * tiles_y * BLOCK_SIZE,
+            table.shape[0] * tiles_x * tiles_y * BLOCK_SIZE,
             inputs=[
                 wp_arg(table, wp.int64),
-                n,
-                width,
-                height,
+                like.means2d.shape[0],
+                like.width,
+                like.height,
                 tiles_x,
                 tiles_y,
                 W_MAX_ALPHA if w_max == "alpha" else W_MAX_WEIGHT,
@@ -278,7 +300,6 @@ def gaussian_complexity_views(infos: list, hf_maps: list[torch.Tensor], max_into
             outputs=[wp_arg(max_into, wp.float32), wp_arg(unused[2], wp.float32), wp_arg(unused[3], wp.int32)],
             block_dim=BLOCK_SIZE,
         )
-    return max_into
 
 
 # (size, dtype) of complexity_views_kernel's unused arrays: w_max map, keys, sums, counts
@@ -286,22 +307,16 @@ _UNUSED_VIEWS_ARGUMENTS = ((0, torch.float32), (0, torch.int32), (1, torch.float
 
 
 def views_per_launch(info) -> int:
-    """How many views like ``info`` a Γ pass measures in one launch (:data:`GAMMA_VIEWS_PER_LAUNCH`,
-    fewer where their projections and tile lists would hold more than :data:`GAMMA_VIEWS_BYTES`)."""
-    held = sum(
-        t.numel() * t.element_size()
-        for t in (
-            info.means2d,
-            info.conics,
-            info.opacities,
-            info.depths,
-            info.radii,
-            info.tile_counts,
-            info.sorted_gauss_ids,
-        )
-        if t is not None
-    )
-    return max(1, min(GAMMA_VIEWS_PER_LAUNCH, GAMMA_VIEWS_BYTES // max(held, 1)))
+    """How many views like ``info`` a Γ pass measures in one launch (:func:`views_per_launch_for`)."""
+    return views_per_launch_for(info.means2d.shape[0], info.sorted_gauss_ids.numel())
+
+
+def views_per_launch_for(gaussians: int, slots: int) -> int:
+    """How many views of ``gaussians`` Gaussians and ``slots`` list entries each a Γ pass measures
+    in one launch: :data:`GAMMA_VIEWS_PER_LAUNCH`, fewer where what they hold together (their
+    projections, about 40 bytes a Gaussian, and tile lists, about 8 bytes an entry) would pass
+    :data:`GAMMA_VIEWS_BYTES`."""
+    return max(1, min(GAMMA_VIEWS_PER_LAUNCH, GAMMA_VIEWS_BYTES // max(40 * gaussians + 8 * slots, 1)))
 
 
 class ComplexityMaps:
@@ -404,7 +419,7 @@ class ViewComplexity:
 
 @torch.no_grad()
 def complexity_over_views(
-    bins, maps: ComplexityMaps, num_gaussians: int, device, ranks=None, **options
+    bins, maps: ComplexityMaps, num_gaussians: int, device, ranks=None, groups=None, **options
 ) -> torch.Tensor:
     """[N] Γ over every view of ``maps``: ``bins(i)`` is the :class:`cdcgs.render.RasterizeInfo`
     of view ``i``'s projection and tile lists (:func:`cdcgs.render.bin_view`, which skips the
@@ -424,6 +439,12 @@ def complexity_over_views(
     in the sums already, and the whole pass is taken again from counted lists. An input that held
     NaN or inf raises NonFiniteError, as a counted view does at once.
 
+    ``groups``: an object whose ``measure(indices, maps, total, w_max)`` measures the views
+    ``indices`` under the exact max into ``total`` itself (binned into slots, a launch's worth of
+    views at a time: :class:`cdcgs.train.graph.GammaGroups` replays one CUDA graph for them) and
+    returns their (index, ``pending_flags``), or None when it cannot (then ``bins`` is used), and
+    whose ``release()`` lets go of what it holds; used under the exact max only.
+
     ``options``: ``pixel_aggregation``, ``view_aggregation``, ``w_max``, ``racy_max`` and
     ``racy_seed`` of :class:`ViewComplexity`. ``ranks`` (a :class:`cdcgs.train.distributed.Ranks`
     of several processes): each bins the views ``rank``, ``rank + world``, ... and the
@@ -431,8 +452,22 @@ def complexity_over_views(
     """
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     indices = list(range(rank, len(maps), world))
-    accumulator, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options)
-    overflowed = overflowed_renders([flags for _, flags in slotted]) if slotted else []  # one read for the pass
+    accumulator, slotted = None, None
+    if groups is not None and indices:
+        accumulator = ViewComplexity(num_gaussians, device, **options)
+        if _together(accumulator):
+            try:
+                slotted = groups.measure(indices, maps, accumulator.total, accumulator.w_max)
+            finally:
+                if slotted is None:
+                    groups.release()
+    if slotted is None:
+        accumulator, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options)
+    try:
+        overflowed = overflowed_renders([flags for _, flags in slotted]) if slotted else []  # one read
+    finally:
+        if groups is not None:
+            groups.release()  # after the read of its flags, which its memory holds
 
     def counted(index: int):
         return bins(index, counted=True)

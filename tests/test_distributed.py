@@ -143,13 +143,15 @@ def test_only_rank_0_writes(runs_3dgs):
         ("cdc", {**SCHEDULE, "complexity_schedule": "online", "view_aggregation": "mean"}, False),
         ("mcmc", MCMC_SCHEDULE, False),
         ("mcmc", MCMC_SCHEDULE, True),
+        ("cdc", {**SCHEDULE, "periodic_prune_every": 8}, True),
     ],
-    ids=["cdc", "cdc-online-mean", "mcmc", "mcmc-replayed"],
+    ids=["cdc", "cdc-online-mean", "mcmc", "mcmc-replayed", "cdc-replayed"],
 )
 def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, options, replayed):
     """CDC's Γ pass split over the ranks, its online statistics reduced, MCMC's draws seeded by step
     (the two processes' MCMC steps replayed, its noise drawn after each replay on every process,
-    against one process without them)."""
+    against one process without them; CDC's replayed, each process's share of a Γ pass measured
+    in groups from one body, GammaGroups)."""
     extra = {"cuda_graph": True} if replayed else {}
     r0, r1 = ok(
         run_ranks(
@@ -161,6 +163,8 @@ def test_strategies_stay_equal_across_ranks(small_scene, tmp_path, strategy, opt
     if replayed:
         counts = [r["cuda_graph"]["replayed_steps"] for r in (r0, r1)]
         assert counts[0] == counts[1] > 0, counts
+        if strategy == "cdc":
+            assert all(r["cuda_graph"]["gamma_groups"] > 0 for r in (r0, r1)), [r["cuda_graph"] for r in (r0, r1)]
     assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] and r0["events"]
     assert_params_close(r0["params"], one["params"], rtol=1e-4, atol=1e-5)
 

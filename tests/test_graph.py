@@ -16,6 +16,7 @@ from helpers import (
     warp_without_ordinals,
 )
 
+import cdcgs.complexity
 import cdcgs.train.lookahead as lookahead
 from cdcgs.errors import OptionError
 from cdcgs.render import prepare_camera, rasterize
@@ -102,9 +103,12 @@ def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monke
 @pytest.mark.parametrize("tight", [False, True], ids=["slots", "slots-of-the-last-count"])
 def test_the_gamma_pass_bins_into_slots_and_counts_again_after_an_overflow(tiny_scene, tmp_path, monkeypatch, tight):
     """cdc's Γ passes in a replayed training bin each view whose count the training knows into
-    slots, reading nothing back until the pass's end. With slots of exactly the last count some
-    views overflow and they are binned again, their counts read. Either way the run is the one
-    that reads every count."""
+    slots, reading nothing back until the pass's end, a launch's worth of views at a time from one
+    body (GammaGroups: a CUDA graph on a GPU; here the same body run for each group, groups of two
+    so that the last is filled up). With slots of exactly the last count some views overflow and
+    they are binned again, their counts read. Either way the run is the one that reads every
+    count."""
+    monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_PER_LAUNCH", 2)
     counted, _ = train_briefly(tiny_scene, tmp_path / "counted", "cdc", SHORT, background="white")
     if tight:
         monkeypatch.setattr(lookahead, "MARGIN", 1.0)
@@ -115,6 +119,8 @@ def test_the_gamma_pass_bins_into_slots_and_counts_again_after_an_overflow(tiny_
     views = result["sync_free"]
     assert views["gamma_views_within"] > 0, views
     assert (views["gamma_views_counted_again"] > 0) == tight, views
+    groups = result["cuda_graph"]
+    assert groups["gamma_groups"] >= views["gamma_views_within"] // 2 > 0, groups
 
 
 @CPU_ONLY
@@ -197,7 +203,7 @@ def test_cuda_graph_refuses_what_it_cannot_capture(tiny_scene, tmp_path, overrid
 
 
 @pytest.mark.parametrize("device", ["cuda"])
-@pytest.mark.parametrize("strategy", ["3dgs", "mcmc"])
+@pytest.mark.parametrize("strategy", ["3dgs", "mcmc", "cdc"])
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="captures CUDA graphs: needs a CUDA GPU")
 def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_counted_runs(
     tiny_scene, tmp_path, device, strategy
@@ -213,6 +219,8 @@ def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_count
         runs[name] = (trainer, result)
     summary = runs["graph"][1]["cuda_graph"]
     assert summary["replayed_steps"] > ITERS // 2 and summary["captures"] >= 2, summary
+    if strategy == "cdc":  # its Γ passes' groups of views replayed from one graph a pass
+        assert summary["gamma_captures"] > 0 and summary["gamma_groups"] > summary["gamma_captures"], summary
     # the host's time in the captures and, apart, its waits for the work queued before them
     assert summary["capture_seconds"] > 0 and summary["capture_wait_seconds"] >= 0, summary
     psnr = {name: result["test"]["psnr"] for name, (_, result) in runs.items()}
@@ -371,3 +379,49 @@ def test_a_gpu_without_warps_memory_pool_is_refused(monkeypatch):
     for default in (False, True):
         why, _ = graph.graph_refusal(trainer, default=default)
         assert "memory pool" in why
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+def test_a_gamma_pass_from_one_graph_is_the_pass_view_by_view(tiny_scene, tmp_path, device, monkeypatch):
+    """GammaGroups (a Γ pass's views binned into slots and measured a launch's worth at a time,
+    captured once as a CUDA graph and replayed; on the CPU the same body for each group) gives the
+    Γ of the pass that bins and measures view by view, bit for bit, with groups of 1, 3 (the last
+    one filled up) and 8 views, and with views that overflow their slots (measured again, counted);
+    lets go of its graph and buffers after each pass; with a view whose count is unknown, the pass
+    goes view by view."""
+    if device == "cuda" and not torch.cuda.is_available():
+        pytest.skip("captures CUDA graphs: needs a CUDA GPU")
+    if device == "cpu" and DEFAULT_DEVICE != "cpu":
+        pytest.skip("a CPU test, and the CPU is not among the test devices")
+    trainer, _ = train_briefly(
+        tiny_scene, tmp_path / "run", "cdc", SHORT, background="white", device=device, cuda_graph=True
+    )
+    groups = trainer.gamma_groups
+    assert groups is not None
+    maps, n = trainer.complexity_maps, trainer.model.num
+    expected = cdcgs.complexity.complexity_over_views(trainer._bins, maps, n, trainer.device)
+    assert (expected > 0).sum() > 10
+    for size in (1, 3, 8):
+        monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_PER_LAUNCH", size)
+        before = groups.groups
+        got = cdcgs.complexity.complexity_over_views(trainer._bins, maps, n, trainer.device, groups=groups)
+        torch.testing.assert_close(got, expected, atol=0, rtol=0)
+        assert groups.groups - before == -(-len(maps) // size)
+        assert groups._graph is None and groups._flags is None and groups._infos is None  # let go after the pass
+    # a view whose count the training does not know: the pass bins view by view, the same Γ
+    known = dict(trainer.lookahead._known)
+    del trainer.lookahead._known[next(iter(known))]
+    before = groups.groups
+    got = cdcgs.complexity.complexity_over_views(trainer._bins, maps, n, trainer.device, groups=groups)
+    torch.testing.assert_close(got, expected, atol=0, rtol=0)
+    assert groups.groups == before
+    trainer.lookahead._known = known
+    # every view's last count 1, so that the slots (the largest any view needs) hold 2 pairs: all
+    # overflow, add nothing, and are measured again from counted lists
+    monkeypatch.setattr(lookahead, "FLOOR", 0)
+    for view, (_, _, scale, iteration) in list(trainer.lookahead._known.items()):
+        trainer.lookahead._known[view] = (1, n, scale, iteration)
+    again = trainer.lookahead.gamma_views["counted_again"]
+    got = cdcgs.complexity.complexity_over_views(trainer._bins, maps, n, trainer.device, groups=groups)
+    torch.testing.assert_close(got, expected, atol=0, rtol=0)
+    assert trainer.lookahead.gamma_views["counted_again"] == again + len(maps)

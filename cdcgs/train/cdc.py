@@ -215,7 +215,13 @@ class Consistency:
         if self.complexity_schedule == "online":
             return ViewComplexity.from_state(state["gamma"], state["gamma_views"], **options).result()
         return complexity_over_views(
-            ctx.bins, ctx.complexity_maps, ctx.model.num, ctx.model.device, ranks=ctx.ranks, **options
+            ctx.bins,
+            ctx.complexity_maps,
+            ctx.model.num,
+            ctx.model.device,
+            ranks=ctx.ranks,
+            groups=ctx.gamma_groups,
+            **options,
         )
 
     def measure(self, ctx: StepContext, state: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:

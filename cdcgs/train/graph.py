@@ -28,6 +28,10 @@ degree, the render size and whether the step adds densification statistics (the 
 :meth:`graph_signature`). When one of them changes the next step captures a new graph. Steps that
 refine, views whose count is not known yet and strategies without a signature run as before.
 
+CDC-GS's Γ passes, at refinements, are replayed too: :class:`GammaGroups` captures one group of a
+pass's views (binned into slots and measured in one launch) once per pass and replays it for every
+group.
+
 The halts of ``--sync-free`` work unchanged: a replayed render notes its count and flags on the
 device, and every kernel that changes the training's state reads ``halt``. On the CPU nothing is
 captured: the same step runs one operation at a time, and equals the step without ``--cuda-graph``
@@ -43,17 +47,19 @@ import torch
 import warp as wp
 from torch.autograd.graph import increment_version
 
+from .. import complexity
 from .._interop import launch, warp_device, warp_scope, wp_arg
 from ..errors import OptionError
 from ..kernels._lookahead import select_camera_at_kernel
 from ..kernels.adam import adam_quads
+from ..kernels.blend import VIEW_TABLE_COLUMNS
 from ..kernels.projection import Camera
-from ..render import rasterize
+from ..render import bin_view, rasterize
 from .distributed import my_positions
 from .lookahead import READ_EVERY, halt_refusal
 from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
-__all__ = ["GraphSteps", "graph_refusal"]
+__all__ = ["GammaGroups", "GraphSteps", "capture", "graph_refusal"]
 
 # Host slots of the per-step copies: the host writes slot (iteration % RING) and queues a copy
 # from it; a read of the device (at least every READ_EVERY iterations) waits for every copy, so
@@ -109,6 +115,27 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
             "drop --cuda-graph for this scene",
         )
     return None
+
+
+def capture(device: torch.device, body) -> tuple[torch.cuda.CUDAGraph, float, float]:
+    """``body()``'s launches (torch's and Warp's) captured as one CUDA graph on ``device``, not run:
+    (the graph, the host's wait for the work queued before, the seconds of the capture itself)."""
+    waited = time.perf_counter()
+    torch.cuda.synchronize(device)  # what torch.cuda.graph does first, timed on its own
+    start = time.perf_counter()
+    graph = torch.cuda.CUDAGraph()
+    # torch's context empties torch's cache first (each capture follows a refinement that
+    # replaced the Gaussians): without that, a bonsai training reserved 65.7 GB against 4.7, in
+    # the same time. thread_local: CUDA calls of other threads (none of cdcgs's: --view is
+    # refused) do not break the capture.
+    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+        stream = wp.stream_from_torch(torch.cuda.current_stream(device))
+        wp.capture_begin(stream=stream, external=True)
+        try:
+            body()
+        finally:
+            wp.capture_end(stream=stream)
+    return graph, start - waited, time.perf_counter() - start
 
 
 class GraphSteps:
@@ -250,23 +277,9 @@ class GraphSteps:
         if not self.cuda:
             self.key = key
             return
-        waited = time.perf_counter()
-        torch.cuda.synchronize(self.device)  # what torch.cuda.graph does first, timed on its own
-        start = time.perf_counter()
-        self.capture_wait_seconds += start - waited
-        graph = torch.cuda.CUDAGraph()
-        # torch's context empties torch's cache first (each capture follows a refinement that
-        # replaced the Gaussians): without that, a bonsai training reserved 65.7 GB against 4.7,
-        # in the same time. thread_local: CUDA calls of other threads (none of cdcgs's: --view is
-        # refused) do not break the capture.
-        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
-            stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
-            wp.capture_begin(stream=stream, external=True)
-            try:
-                self._body()
-            finally:
-                wp.capture_end(stream=stream)
-        self.capture_seconds += time.perf_counter() - start
+        graph, waited, seconds = capture(self.device, self._body)
+        self.capture_wait_seconds += waited
+        self.capture_seconds += seconds
         self._grads = [p.grad for p in self._params]  # the graph's own memory: the table names it
         missing = [name for name, p in trainer.model.params.items() if p.grad is None]
         if missing:
@@ -396,4 +409,148 @@ class GraphSteps:
             "replayed_steps": self.replays,
             "capture_seconds": self.capture_seconds,
             "capture_wait_seconds": self.capture_wait_seconds,
+        }
+
+
+class GammaGroups:
+    """A Γ pass's views (CDC-GS) measured a launch's worth at a time from one CUDA graph.
+
+    Binned one by one, each view of a pass costs the host about 1 ms (a projection, the binning's
+    launches and allocations, the Python around them) where the GPU needs 0.4-0.8 ms at 1M
+    Gaussians, so the host paced the pass (docs/benchmarks.md). Here a group of views (as many
+    as :func:`cdcgs.complexity.complexity_over_views` measures in one launch) is captured once per
+    pass: for each of its slots the view's camera picked on the device from ``where``
+    (:data:`cdcgs.kernels._lookahead.select_camera_at_kernel`) and its tile lists binned into
+    slots (:func:`cdcgs.render.bin_view`), then one ``complexity_views_kernel`` launch into the
+    pass's Γ with the views' maps picked by the same indices, and the views' overflow flags copied
+    into a table of every view's. The graph is replayed for each group; the last group is filled
+    up with its first view (a view measured twice changes no max). The slots are the largest any
+    of the pass's views needs; a pass with a view whose count the training does not know runs as
+    before. Γ is the same bit for bit. On the CPU nothing is captured: the same body runs for each
+    group (``tests/test_graph.py``)."""
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.device = trainer.graphs.device  # with its ordinal
+        self.cuda = self.device.type == "cuda"
+        self.captures = 0
+        self.capture_seconds = 0.0
+        self.groups = 0
+        self._cameras = None  # every training view's camera on the device, made once
+        self.release()
+
+    def measure(self, indices: list[int], maps, total: torch.Tensor, w_max: str) -> list | None:
+        """Measure the views ``indices`` into ``total`` (the exact max; the ``groups`` of
+        :func:`cdcgs.complexity.complexity_over_views`): their (index, ``pending_flags``), or None
+        when a view's count is unknown (the pass then bins view by view)."""
+        trainer = self.trainer
+        lookahead = trainer.lookahead
+        n = trainer.model.num
+        needs = [lookahead.capacity(view, n) for view in indices]
+        if not indices or any(c is None for c in needs):
+            return None
+        capacity = max(needs)
+        size = complexity.views_per_launch_for(n, capacity)
+        groups = [indices[i : i + size] for i in range(0, len(indices), size)]
+        groups[-1] = groups[-1] + [groups[-1][0]] * (size - len(groups[-1]))
+        self._prepare(size, capacity, maps, indices, total, w_max)
+        self._ring = torch.tensor(groups, dtype=torch.int32, pin_memory=self.cuda)
+        if self.cuda:
+            self._capturing = True
+            try:
+                self._graph, _, seconds = capture(self.device, self._body)
+            finally:
+                self._capturing = False
+            # the addresses of the graph's own buffers, known once captured; read by every replay
+            self._table.copy_(torch.tensor(self._rows, dtype=torch.int64))
+            self.captures += 1
+            self.capture_seconds += seconds
+        for group in range(len(groups)):
+            self._where.copy_(self._ring[group], non_blocking=True)
+            if self.cuda:
+                self._graph.replay()
+            else:
+                self._body()
+        self.groups += len(groups)
+        lookahead.gamma_views["within"] += len(indices)
+        return [(view, (self._flags[view], self._names)) for view in indices]
+
+    def _prepare(self, size: int, capacity: int, maps, indices: list[int], total: torch.Tensor, w_max: str) -> None:
+        """What the body reads or writes that is not made inside it (a capture must not allocate
+        what outlives it, nor read host memory that changes)."""
+        trainer = self.trainer
+        device = self.device
+        if self._cameras is None:
+            self._cameras = wp.array(
+                [c.camera for c in trainer.cameras], dtype=Camera, device=wp.device_from_torch(device)
+            )
+        self._current = [wp.empty(1, dtype=Camera, device=self._cameras.device) for _ in range(size)]
+        self._prepared = [dataclasses.replace(trainer.cameras[0], on_device=c) for c in self._current]
+        self._where = torch.zeros(size, dtype=torch.int32, device=device)
+        addresses = [0] * len(maps)
+        camera = trainer.cameras[0]
+        for view in indices:
+            hf_map = maps[view]  # the graph reads it through its address: checked here
+            if (
+                hf_map.shape != (camera.height, camera.width)
+                or hf_map.dtype != torch.uint8
+                or hf_map.device != device
+                or not hf_map.is_contiguous()
+            ):
+                raise ValueError(
+                    f"the complexity map of view {view} must be a contiguous uint8 [{camera.height}, {camera.width}] "
+                    f"tensor on {device}, got {hf_map.dtype} {list(hf_map.shape)} on {hf_map.device}"
+                )
+            addresses[view] = hf_map.data_ptr()
+        self._maps = [maps[view] for view in indices]  # their addresses are in the table below
+        self._map_addresses = torch.tensor(addresses, dtype=torch.int64).to(device)
+        self._flags = torch.zeros(len(maps), len(self._NAMES) + 2, dtype=torch.int32, device=device)
+        self._names = tuple(self._NAMES)
+        self._table = torch.zeros(size, VIEW_TABLE_COLUMNS, dtype=torch.int64, device=device)
+        self._inputs = trainer._bin_inputs()
+        self._size, self._capacity, self._total, self._w_max = size, capacity, total, w_max
+
+    _NAMES = ("means", "quats", "scales", "opacities")  # bin_view's flags of non-finite inputs, in its order
+
+    def _body(self) -> None:
+        """One group: each slot's view binned into the slots, the group measured in one launch,
+        the views' flags kept. Reads the views from ``where`` only."""
+        means, quats, shape = self._inputs
+        antialiased = self.trainer.config.antialiased
+        infos = []
+        with warp_scope(self.device):
+            for slot in range(self._size):
+                launch(
+                    select_camera_at_kernel,
+                    1,
+                    inputs=[self._cameras, wp_arg(self._where, wp.int32), slot],
+                    outputs=[self._current[slot]],
+                )
+                info = bin_view(
+                    means, quats, **shape, camera=self._prepared[slot], antialiased=antialiased, capacity=self._capacity
+                )
+                if info._pending_names != self._names:  # what the flags table was made for
+                    raise RuntimeError(f"bin_view's flags are {info._pending_names}, not {self._names}")
+                infos.append(info)
+        self._rows, self._held = complexity.views_table_rows(infos, None)  # the maps' column is filled below
+        if not self._capturing:  # captured: the table is filled once after the capture (no copy in the graph)
+            self._table.copy_(torch.tensor(self._rows, dtype=torch.int64))
+        views = self._where.long()
+        self._table[:, 5] = self._map_addresses.index_select(0, views)  # the maps' column
+        complexity.launch_complexity_views(self._table, infos[0], self._w_max, self._total)
+        self._flags.index_copy_(0, views, torch.stack([info.pending for info in infos]))
+        self._infos = infos  # the graph's memory; kept until the pass has read the flags
+
+    def release(self) -> None:
+        """Let go of the graph and its memory (after the pass's read of the flags)."""
+        self._graph = self._ring = self._where = self._flags = self._table = self._rows = None
+        self._capturing = False
+        self._infos = self._held = self._inputs = self._total = self._maps = self._map_addresses = None
+        self._current = self._prepared = []
+
+    def summary(self) -> dict:
+        return {
+            "gamma_captures": self.captures,
+            "gamma_capture_seconds": self.capture_seconds,
+            "gamma_groups": self.groups,
         }

@@ -50,6 +50,8 @@ class StepContext:
     render: Callable | None = None  # render(view_index) -> (image, alpha, info) of a training view
     # bins(view_index) -> PendingBins of a training view's tile lists (no image); .finish() gives its RasterizeInfo
     bins: Callable | None = None
+    # a Γ pass's views measured from one CUDA graph (cdcgs.train.graph.GammaGroups), or None
+    gamma_groups: Any = None
     views: list | None = None  # the training views (with their images)
     complexity_maps: Any = None  # cdcgs.complexity.ComplexityMaps of the training views, owned by the run
     ranks: Any = None  # cdcgs.train.distributed.Ranks of a run on several processes (None: one process)

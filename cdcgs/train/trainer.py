@@ -35,7 +35,7 @@ from .distributed import (
     step_seed,
 )
 from .evaluate import evaluate, lpips_metric
-from .graph import GraphSteps, graph_refusal
+from .graph import GammaGroups, GraphSteps, graph_refusal
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
 from .lookahead import READ_EVERY, Halted, Lookahead, halt_refusal
@@ -232,6 +232,7 @@ class Trainer:
         self._colour_grads: list[torch.Tensor] = []
         self.lookahead: Lookahead | None = None  # --sync-free
         self.graphs: GraphSteps | None = None  # --cuda-graph
+        self.gamma_groups: GammaGroups | None = None  # the Γ passes' groups of views, with the graphs
         self.graph_off: str | None = None  # why the steps are not replayed as CUDA graphs
         self.balanced_steps = 0  # steps whose views the processes split by their counts (--dist-balance counts)
         self._snapshots: dict[int, dict] = {}  # --sync-free: iteration -> what the host needs to take it again
@@ -347,6 +348,10 @@ class Trainer:
         self.statistics = StatisticsSync(self.ranks, kinds) if self.ranks.distributed else None
         self._flags = torch.zeros(3, device=self.device)
         self.graphs = self._graph_steps()
+        # A Γ pass's groups of views replayed from one CUDA graph, where the steps are
+        self.gamma_groups = None
+        if self.graphs is not None and self.complexity_maps is not None:
+            self.gamma_groups = GammaGroups(self)
         sync_free = config.sync_free or self.graphs is not None
         self.lookahead = Lookahead(self.device, len(self.scene.train)) if sync_free else None
         config_json = {
@@ -385,7 +390,7 @@ class Trainer:
             return
         rank, reason = refused[0]
         self.graphs.release()
-        self.graphs = None
+        self.graphs = self.gamma_groups = None
         self.graph_off = f"{reason} (on process {rank}, so on every process)"
         if not self.config.sync_free:
             self.lookahead = None
@@ -490,6 +495,20 @@ class Trainer:
         computed once for it, again only when a parameter has changed (another tensor, or an
         in-place update: torch's version counter; weak references, so that no old parameter is
         kept alive or mistaken for a new one at its address)."""
+        means, quats, scales_and_opacities = self._bin_inputs()
+        shape = dict(camera=self.cameras[view_index], antialiased=self.config.antialiased)
+        if self.lookahead is None:
+            return start_bin_view(means, quats, **scales_and_opacities, **shape)
+        capacity = None if counted else self.lookahead.capacity(view_index, self.model.num)
+        if capacity is not None:
+            self.lookahead.gamma_views["within"] += 1
+            return bin_view(means, quats, **scales_and_opacities, **shape, capacity=capacity)
+        self.lookahead.gamma_views["counted_again" if counted else "counted"] += 1
+        return start_bin_view(means, quats, **scales_and_opacities, **shape)
+
+    def _bin_inputs(self) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """(means, quats, {"scales", "opacities"}) of the Gaussians as the Γ passes bin them, the
+        scales and opacities computed once for a pass (see :meth:`_bins`)."""
         params = [self.model.params[name] for name in self._SHAPE_PARAMS]
         if self._shape_key is None or any(
             ref() is not p or version != p._version for (ref, version), p in zip(self._shape_key, params)
@@ -497,16 +516,7 @@ class Trainer:
             with torch.no_grad():
                 self._shape = {"scales": self.model.scales(), "opacities": self.model.opacities()}
             self._shape_key = [(weakref.ref(p), p._version) for p in params]
-        means, quats = self.model.params["means"].detach(), self.model.params["quats"].detach()
-        shape = dict(camera=self.cameras[view_index], antialiased=self.config.antialiased)
-        if self.lookahead is None:
-            return start_bin_view(means, quats, **self._shape, **shape)
-        capacity = None if counted else self.lookahead.capacity(view_index, self.model.num)
-        if capacity is not None:
-            self.lookahead.gamma_views["within"] += 1
-            return bin_view(means, quats, **self._shape, **shape, capacity=capacity)
-        self.lookahead.gamma_views["counted_again" if counted else "counted"] += 1
-        return start_bin_view(means, quats, **self._shape, **shape)
+        return self.model.params["means"].detach(), self.model.params["quats"].detach(), self._shape
 
     _SHAPE_PARAMS = ("log_scales", "opacity_logits")  # what the cached scales and opacities come from
 
@@ -771,6 +781,7 @@ class Trainer:
             generator=self.generator,
             render=self._render,
             bins=self._bins,
+            gamma_groups=self.gamma_groups,
             views=self.scene.train,
             complexity_maps=self.complexity_maps,
             ranks=self.ranks if self.ranks.distributed else None,
@@ -1307,6 +1318,8 @@ class Trainer:
             result["sync_free"] = self.lookahead.summary()
         if self.graphs is not None:
             result["cuda_graph"] = self.graphs.summary()
+            if self.gamma_groups is not None:
+                result["cuda_graph"].update(self.gamma_groups.summary())
         else:
             result["cuda_graph"] = {"off": self.graph_off}
         if self.config.dist_balance != "none":
