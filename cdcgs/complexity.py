@@ -62,7 +62,7 @@ W_MAX_PASS = "walk"
 # the exact max over pixels and views with the walk's w_max (the default): one view's launch
 # leaves most SMs idle while its longest tile lists finish, and the next views' tiles take them.
 # Their projections and tile lists are alive together: fewer views where they would hold more
-# than GAMMA_VIEWS_BYTES. 1: one view a launch, as before.
+# than GAMMA_VIEWS_BYTES. 1: one view a launch.
 GAMMA_VIEWS_PER_LAUNCH = 8
 GAMMA_VIEWS_BYTES = 1 << 30
 LUMA = (0.299, 0.587, 0.114)
@@ -452,18 +452,13 @@ def complexity_over_views(
     """
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     indices = list(range(rank, len(maps), world))
-    accumulator, slotted = None, None
-    if groups is not None and indices:
-        accumulator = ViewComplexity(num_gaussians, device, **options)
-        if _together(accumulator):
-            try:
-                slotted = groups.measure(indices, maps, accumulator.total, accumulator.w_max)
-            finally:
-                if slotted is None:
-                    groups.release()
-    if slotted is None:
-        accumulator, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options)
+    accumulator = ViewComplexity(num_gaussians, device, **options)
     try:
+        slotted = None
+        if groups is not None and indices and _together(accumulator):
+            slotted = groups.measure(indices, maps, accumulator.total, accumulator.w_max)
+        if slotted is None:  # view by view
+            _, slotted = _measure_views(bins, maps, indices, num_gaussians, device, options, accumulator)
         overflowed = overflowed_renders([flags for _, flags in slotted]) if slotted else []  # one read
     finally:
         if groups is not None:

@@ -48,6 +48,7 @@ __all__ = [
     "MAX_RACY_KEEP",
     "MAX_RACY_RANK",
     "VIEW_TABLE_COLUMNS",
+    "VIEW_TABLE_MAP",
     "W_MAX_ALPHA",
     "W_MAX_WEIGHT",
     "blend_backward_kernel",
@@ -927,6 +928,7 @@ def complexity_kernel(
 # lists, 2D means, conics, opacities and complexity map, the length of its tile lists, then the
 # address of its overflow flag (int32; 0: none) and that flag's index there.
 VIEW_TABLE_COLUMNS = 9
+VIEW_TABLE_MAP = 5  # the column of the complexity map's address
 
 
 @wp.kernel(enable_backward=False)

@@ -52,7 +52,7 @@ from .._interop import launch, warp_device, warp_scope, wp_arg
 from ..errors import OptionError
 from ..kernels._lookahead import select_camera_at_kernel
 from ..kernels.adam import adam_quads
-from ..kernels.blend import VIEW_TABLE_COLUMNS
+from ..kernels.blend import VIEW_TABLE_COLUMNS, VIEW_TABLE_MAP
 from ..kernels.projection import Camera
 from ..render import bin_view, rasterize
 from .distributed import my_positions
@@ -136,6 +136,12 @@ def capture(device: torch.device, body) -> tuple[torch.cuda.CUDAGraph, float, fl
         finally:
             wp.capture_end(stream=stream)
     return graph, start - waited, time.perf_counter() - start
+
+
+def cameras_on_device(cameras: list, device: torch.device) -> wp.array:
+    """The :class:`cdcgs.kernels.Camera` of each prepared camera, in one Warp array on ``device``:
+    the table a replayed kernel picks a view's camera from (``select_camera_at_kernel``)."""
+    return wp.array([c.camera for c in cameras], dtype=Camera, device=warp_device(device))
 
 
 class GraphSteps:
@@ -298,7 +304,7 @@ class GraphSteps:
                 (trainer.cameras[v], trainer.scene.train[v].image) if scale == 1 else trainer._scaled_view(v, scale)
                 for v in views
             ]
-            cameras = wp.array([c.camera for c, _ in pairs], dtype=Camera, device=wp.device_from_torch(self.device))
+            cameras = cameras_on_device([c for c, _ in pairs], self.device)
             current = wp.empty(1, dtype=Camera, device=cameras.device)
             prepared = dataclasses.replace(pairs[0][0], on_device=current)
             photos = torch.stack([photo for _, photo in pairs])
@@ -481,9 +487,7 @@ class GammaGroups:
         trainer = self.trainer
         device = self.device
         if self._cameras is None:
-            self._cameras = wp.array(
-                [c.camera for c in trainer.cameras], dtype=Camera, device=wp.device_from_torch(device)
-            )
+            self._cameras = cameras_on_device(trainer.cameras, device)
         self._current = [wp.empty(1, dtype=Camera, device=self._cameras.device) for _ in range(size)]
         self._prepared = [dataclasses.replace(trainer.cameras[0], on_device=c) for c in self._current]
         self._where = torch.zeros(size, dtype=torch.int32, device=device)
@@ -536,7 +540,7 @@ class GammaGroups:
         if not self._capturing:  # captured: the table is filled once after the capture (no copy in the graph)
             self._table.copy_(torch.tensor(self._rows, dtype=torch.int64))
         views = self._where.long()
-        self._table[:, 5] = self._map_addresses.index_select(0, views)  # the maps' column
+        self._table[:, VIEW_TABLE_MAP] = self._map_addresses.index_select(0, views)
         complexity.launch_complexity_views(self._table, infos[0], self._w_max, self._total)
         self._flags.index_copy_(0, views, torch.stack([info.pending for info in infos]))
         self._infos = infos  # the graph's memory; kept until the pass has read the flags
