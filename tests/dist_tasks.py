@@ -78,6 +78,13 @@ def run_ranks(task: str, world: int, tmp_path, timeout: float = 60.0, **kwargs) 
     return outs
 
 
+def ok(outs: list[dict]) -> list:
+    """Every rank's result, in rank order; a rank without one fails the test with its error."""
+    for rank, out in enumerate(outs):
+        assert "result" in out, f"rank {rank}: {out.get('error')}: {out.get('message')}\n{out.get('traceback', '')}"
+    return [out["result"] for out in outs]
+
+
 # --------------------------------------------------------------------------------------- tasks
 
 
@@ -194,10 +201,19 @@ def train(
     from cdcgs.train.trainer import Trainer
 
     writes = []
-    writers = ((trainer_module, "save_checkpoint"), (trainer_module, "write_ply"), (outputs, "write_json"))
+    from cdcgs.train import shard_training
+
+    writers = (
+        (trainer_module, "save_checkpoint"),
+        (trainer_module, "write_ply"),
+        (outputs, "write_json"),
+        (shard_training, "save_checkpoint"),
+        (shard_training, "write_ply"),
+    )
     patched = [(module, name, getattr(module, name)) for module, name in writers]
-    patched.append((Trainer, "train_step", Trainer.train_step))
-    for module, name, real in patched[:-1]:
+    ShardedTrainer = shard_training.ShardedTrainer
+    patched += [(Trainer, "train_step", Trainer.train_step), (ShardedTrainer, "train_step", ShardedTrainer.train_step)]
+    for module, name, real in patched[:-2]:
 
         def spy(*args, _real=real, _name=name, **kwargs):
             writes.append(_name)
@@ -205,10 +221,10 @@ def train(
 
         setattr(module, name, spy)
     checksums, sent, flag_buffers = [], [], set()
-    real_step = Trainer.train_step
+    real_steps = {Trainer: Trainer.train_step, ShardedTrainer: ShardedTrainer.train_step}
 
     def step(self):
-        result = real_step(self)
+        result = real_steps[type(self)](self)
         checksums.append((self.step, _checksum(self.model.params)))
         flag_buffers.add(self._flags.data_ptr())
         if stop_at is not None and rank == world - 1 and self.step >= stop_at and not sent:
@@ -221,7 +237,7 @@ def train(
                 self.model.params["means"][0, 0] += 1e-3
         return result
 
-    Trainer.train_step = step
+    Trainer.train_step = ShardedTrainer.train_step = step
     # (iteration, positions, the views' agreed costs or None) of every split of a step's views
     splits = []
     real_positions = Trainer.positions

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 import torch
-from dist_tasks import SCHEDULE, first_step_gradients, run_here, run_ranks, task_config
+from dist_tasks import SCHEDULE, first_step_gradients, ok, run_here, run_ranks, task_config
 from helpers import hand_model
 
 from cdcgs.datasets.procedural import make_procedural_scene
@@ -31,12 +31,6 @@ MCMC_SCHEDULE = {"refine_from": 2, "refine_every": 4, "refine_until": 10, "targe
 def small_scene(tmp_path_factory):
     """9 views of 32 x 32 pixels (6 for training, 3 held out) and 48 points."""
     return make_procedural_scene(tmp_path_factory.mktemp("dist_scene"), views=9, width=32, height=32, points=48)
-
-
-def ok(outs):
-    for rank, out in enumerate(outs):
-        assert "result" in out, f"rank {rank}: {out.get('error')}: {out.get('message')}\n{out.get('traceback', '')}"
-    return [out["result"] for out in outs]
 
 
 def assert_params_close(a, b, rtol=1e-5, atol=1e-6):

@@ -7,6 +7,7 @@ from .mcmc import MCMC
 from .model import GaussianModel
 from .outputs import Run, load_run
 from .presets import PRESETS
+from .shard_training import ShardedTrainer
 from .strategies import make_strategy
 from .strategy import ADC, StepContext, Strategy
 from .trainer import Trainer, TrainingDiverged
@@ -20,6 +21,7 @@ __all__ = [
     "GaussianModel",
     "LearningRates",
     "Run",
+    "ShardedTrainer",
     "StepContext",
     "Strategy",
     "TrainConfig",

@@ -14,6 +14,7 @@ from .presets import PRESET_TRAINING, PRESETS, TRAINING_DEFAULTS, canonical_name
 
 __all__ = [
     "BACKGROUNDS",
+    "DIST_MODES",
     "OPTIMIZERS",
     "RESOLUTION_SCHEDULES",
     "DataConfig",
@@ -31,6 +32,7 @@ BACKGROUNDS = ("black", "white", "random")
 SCALE_RULES = ("3dgs", "cdc")
 OPTIMIZERS = ("adam", "selective", "torch-adam")
 RESOLUTION_SCHEDULES = ("none", "dash")
+DIST_MODES = ("data", "shards")
 
 
 def option(
@@ -213,6 +215,11 @@ class TrainConfig:
     )
     batch_beta_power: float | None = option(
         None, "Adam's betas raised to this power at --batch-size B (none: B)", low=0.0, low_open=True
+    )
+    dist_mode: str = option(
+        "data",
+        "how the processes of a torchrun launch share the scene: data (data parallelism: every process holds every Gaussian and the step's gradients are all-reduced) or shards (each process holds a slice of the Gaussians, with its gradients and Adam moments, and renders its views of the whole scene through an exchange of the projected slices; 3dgs-style strategies without caps, adam or torch-adam, no CUDA graphs yet: docs/distributed.md)",
+        choices=DIST_MODES,
     )
     dist_backend: str = option(
         "auto",

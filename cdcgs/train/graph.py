@@ -75,6 +75,8 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
     nothing. ``--cuda-graph`` given explicitly raises the reason; left at none the training runs
     without graphs and says why (:meth:`cdcgs.train.trainer.Trainer`)."""
     config = trainer.config
+    if not getattr(trainer, "replicated", True):
+        return "replays the steps of data parallelism; a training on shards is not captured yet", "--dist-mode data"
     if default and trainer.device.type != "cuda":
         return "replays steps on CUDA", f"this training runs on {trainer.device.type}"
     if trainer.device.type == "cuda" and not wp.is_mempool_supported(warp_device(trainer.device)):

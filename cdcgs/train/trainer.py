@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import time
+import typing
 import weakref
 
 import torch
@@ -198,7 +199,29 @@ class Trainer:
     ``callbacks``: objects with ``on_start(trainer)`` (scene, model and strategy ready),
     ``on_step(trainer)`` (after each iteration) and ``on_end(trainer)`` (always, last); the browser
     viewer of ``cdcgs train --view`` is one (cdcgs.viewer.TrainingViewer).
+
+    ``Trainer(config)`` makes the subclass of ``config.dist_mode`` where one declares it (its
+    ``dist_mode``): "shards" makes a :class:`cdcgs.train.shard_training.ShardedTrainer` (each
+    process of the launch holds a slice of the Gaussians), the same calls.
     """
+
+    dist_mode = "data"  # every process holds every Gaussian (data parallelism)
+    replicated = True  # False: each process holds a slice
+    _by_mode: typing.ClassVar[dict[str, type]] = {}  # dist_mode -> the subclass that trains it
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        Trainer._by_mode.setdefault(cls.dist_mode, cls)
+
+    def __new__(cls, config: TrainConfig | None = None, *args, **kwargs):
+        mode = getattr(config, "dist_mode", cls.dist_mode)
+        if mode != cls.dist_mode:
+            if cls is not Trainer:
+                raise OptionError(f"{cls.__name__} trains --dist-mode {cls.dist_mode}, not {mode}")
+            if mode not in Trainer._by_mode:
+                raise OptionError(f"--dist-mode {mode}: no trainer of that mode (import cdcgs.train first)")
+            cls = Trainer._by_mode[mode]
+        return super().__new__(cls)
 
     def __init__(
         self, config: TrainConfig, strategy_options: dict | None = None, callbacks=(), ranks: Ranks | None = None
@@ -325,9 +348,7 @@ class Trainer:
                     f"{len(self.scene.test)} others: resume with the run's own split (--test-every as it was, or "
                     f"--test-views {os.path.join(self.out, outputs.TEST_VIEWS)})",
                 )
-            self.model = GaussianModel.from_state_dict(resume_state["model"], device=self.device)
-            self.optimizer = make_optimizer(self.model, config.lr, self.scene.extent, config.optimizer)
-            load_optimizer_state(self.optimizer, resume_state["optimizer"])
+            self._restore_gaussians(resume_state)
             # The command's rates, eps and betas (its batch size's rule), not the checkpoint's.
             set_hyperparameters(self.optimizer, config.lr, self.scene.extent, batch_rule(config))
             self.strategy_state = {
@@ -361,6 +382,12 @@ class Trainer:
             "scene": self._scene_summary(),
         }
         self._config_json = config_json  # written once every process has set up
+
+    def _restore_gaussians(self, state: dict) -> None:
+        """The model and its optimizer (with Adam's moments) from a checkpoint's ``state``."""
+        self.model = GaussianModel.from_state_dict(state["model"], device=self.device)
+        self.optimizer = make_optimizer(self.model, self.config.lr, self.scene.extent, self.config.optimizer)
+        load_optimizer_state(self.optimizer, state["optimizer"])
 
     def _graph_steps(self) -> GraphSteps | None:
         """The steps replayed as CUDA graphs: with ``--cuda-graph``, refused with the reason where
@@ -405,6 +432,11 @@ class Trainer:
         if refusal is not None:
             name = "--cuda-graph" if config.cuda_graph else "--sync-free"
             raise OptionError(f"{name} {refusal[0]}: {refusal[1]}")
+
+    @property
+    def num_gaussians(self) -> int:
+        """The Gaussians of the whole scene (this process's model holds them all, unless sharded)."""
+        return self.model.num
 
     def _scene_summary(self) -> dict:
         s = self.scene
@@ -654,12 +686,17 @@ class Trainer:
             "step_ms": step_ms,
         }
 
+    def _evaluation_model(self) -> GaussianModel:
+        """The Gaussians an evaluation renders: the whole scene (each process scores its share of
+        the test views)."""
+        return self.model
+
     def _evaluate(self, final: bool) -> dict:
         self.check_numbers(params=True)
         self._peak_memory("train")  # the LPIPS networks' activations are not the training's memory
         save_dir = os.path.join(self.out, "test_renders") if (final and self.config.save_renders) else None
         metrics = evaluate(
-            self.model,
+            self._evaluation_model(),
             self.scene.test,
             background=self.background,
             antialiased=self.config.antialiased,
@@ -692,15 +729,7 @@ class Trainer:
         if timed:
             self._synchronize()
             step_start = time.perf_counter()
-        self._set_position_lr(first)
-        for iteration in range(first, last + 1):
-            if iteration % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
-                self.model.sh_degree += 1
-        # Every process draws the whole batch (views, backgrounds) from the same streams and
-        # renders its positions of it; the step's draws come from a generator seeded by (seed, step).
-        views = [self._next_view() for _ in range(count)]
-        self.generator.manual_seed(step_seed(config.seed, first))
-        backgrounds = [self._step_background() for _ in range(count)]
+        views, backgrounds = self._start_step(first, last)
         # A replayed step renders a whole batch (the last, shorter one runs as before); a timed
         # step (several processes) runs as before, its parts timed apart.
         replayable = self.graphs is not None and count == config.batch_size and not timed
@@ -768,6 +797,20 @@ class Trainer:
         for _, log in self.step_events:
             merged.update(log)
         return merged
+
+    def _start_step(self, first: int, last: int) -> tuple[list[int], list[torch.Tensor]]:
+        """The rates, the SH degree and the draws of the step of iterations ``first`` to ``last``:
+        (its views, their backgrounds). Every process draws the whole batch from the same streams
+        and renders its positions of it; the step's draws come from a generator seeded by (seed,
+        step)."""
+        config = self.config
+        self._set_position_lr(first)
+        for iteration in range(first, last + 1):
+            if iteration % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
+                self.model.sh_degree += 1
+        views = [self._next_view() for _ in range(last - first + 1)]
+        self.generator.manual_seed(step_seed(config.seed, first))
+        return views, [self._step_background() for _ in views]
 
     def _context(self, iteration: int, info=None, view_index: int | None = None) -> StepContext:
         return StepContext(
@@ -1240,33 +1283,47 @@ class Trainer:
             self._raise_pending()
             loss, psnr_value = self.guard.means()
             if logged:
-                for key, value in (("step", step), ("loss", loss), ("psnr", psnr_value), ("gaussians", self.model.num)):
+                for key, value in (
+                    ("step", step),
+                    ("loss", loss),
+                    ("psnr", psnr_value),
+                    ("gaussians", self.num_gaussians),
+                ):
                     self.history[key].append(value)
                 # the training time so far (a run resumed from an older checkpoint starts this list there)
                 self.history.setdefault("train_seconds", []).append({"step": step, "seconds": self.train_seconds})
                 memory = allocator_now(self.device)
                 if memory:  # a run resumed from an older checkpoint starts the timeline there
                     self.history.setdefault("gpu_memory", []).append({"step": step, **memory})
-            bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr_value:.2f}", gaussians=self.model.num, refresh=False)
+            bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr_value:.2f}", gaussians=self.num_gaussians, refresh=False)
             if report and self.ranks.is_main:
                 print(
                     f"[{step}/{config.iters}] loss {loss:.4f}, PSNR {psnr_value:.2f} dB, "
-                    f"{self.model.num} Gaussians, {step / max(self.train_seconds, 1e-9):.1f} it/s",
+                    f"{self.num_gaussians} Gaussians, {step / max(self.train_seconds, 1e-9):.1f} it/s",
                     flush=True,
                 )
         bar.update(step - before)
         if self.ranks.distributed and crossed(before, step, config.check_ranks_every):
-            self.ranks.check_in_step(self.model.params, step)
+            self._check_ranks(step)
         if crossed(before, step, config.eval_every) and not last and self.scene.test:
             self._raise_pending()  # a signal during the step: stop before a long evaluation
             metrics = self._evaluate(final=False)
             if self.ranks.is_main:
                 bar.write(
-                    f"[{step}] test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {self.model.num} Gaussians"
+                    f"[{step}] test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, {self.num_gaussians} Gaussians"
                 )
         if crossed(before, step, config.checkpoint_every) and not last:
             self._raise_pending()  # the interrupt's checkpoint is this one, with the PLY
             self.save(ply=False)
+
+    def _result_extras(self) -> dict:
+        """Entries of metrics.json that only some trainings have."""
+        return {}
+
+    def _check_ranks(self, step: int) -> None:
+        """Every ``--check-ranks-every`` iterations on several processes: their parameters compared
+        (a checksum), which data parallelism keeps identical; :class:`RankDrift` where they differ."""
+        self.ranks.check_in_step(self.model.params, step)
 
     def _reads_at(self, before: int, step: int) -> bool:
         """Whether the step from ``before`` to ``step`` ends where the run reads the device anyway
@@ -1299,7 +1356,7 @@ class Trainer:
         result = {
             "test": {k: v for k, v in metrics.items() if k != "per_view"},
             "per_view": metrics.get("per_view", []),
-            "num_gaussians": self.model.num,
+            "num_gaussians": self.num_gaussians,
             "iterations": self.step,
             "train_seconds": self.train_seconds,
             "iterations_per_second": self.step / max(self.train_seconds, 1e-9),
@@ -1322,6 +1379,7 @@ class Trainer:
                 result["cuda_graph"].update(self.gamma_groups.summary())
         else:
             result["cuda_graph"] = {"off": self.graph_off}
+        result.update(self._result_extras())
         if self.config.dist_balance != "none":
             result["dist_balance"] = {"mode": self.config.dist_balance, "balanced_steps": self.balanced_steps}
         if self.ranks.distributed:

@@ -1,0 +1,228 @@
+"""Training on sharded Gaussians (``--dist-mode shards``, cdcgs.train.shard_training) on the CPU
+with gloo: two processes, each holding a slice of the scene, against one process training the same
+batches with every Gaussian."""
+
+import json
+
+import pytest
+import torch
+from dist_tasks import SCHEDULE, ok, run_here, run_ranks, task_config
+
+from cdcgs.datasets.procedural import make_procedural_scene
+from cdcgs.errors import OptionError
+from cdcgs.io import load_checkpoint, read_ply
+from cdcgs.train.shard_training import ShardedTrainer, even_rows, shard_refusal
+from cdcgs.train.strategies import make_strategy
+from cdcgs.train.trainer import Trainer
+
+pytestmark = pytest.mark.skipif(
+    not torch.distributed.is_available() or not torch.distributed.is_gloo_available(),
+    reason="this torch has no torch.distributed with gloo",
+)
+
+# SCHEDULE (densification at 4 and 8, an opacity reset at 8), with every selected Gaussian cloned:
+# no split draws random numbers, so the slices together must take one process's run. The threshold
+# selects some Gaussians of each slice, not all, so the slices grow apart.
+CLONES = {**SCHEDULE, "clone_max_scale": 1e9, "grad_threshold": 2e-3}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """9 views of 32 x 32 pixels (6 for training, 3 held out) and 48 points."""
+    return make_procedural_scene(tmp_path_factory.mktemp("shard_scene"), views=9, width=32, height=32, points=48)
+
+
+def rows_of(params: dict, names) -> torch.Tensor:
+    """[N, sum of widths]: each Gaussian's parameters ``names`` in one row."""
+    return torch.cat([params[name].reshape(params[name].shape[0], -1) for name in names], dim=1).double()
+
+
+# Adam turns a gradient near zero into a step of about its learning rate either way: the rotations
+# of these round, isotropic Gaussians get gradients about 0 whose sign the slices' sums (exact to
+# 1e-9) can flip, so a few of their entries end up to two steps (2 x 1e-3) apart. Every other
+# parameter stays within float32 rounding.
+TOLERANCE = {"means": 1e-5, "log_scales": 1e-5, "opacity_logits": 1e-5, "sh_dc": 1e-5, "sh_rest": 1e-5, "quats": 2.5e-3}
+
+
+def assert_same_gaussians(a: dict, b: dict) -> torch.Tensor:
+    """The same Gaussians in any order: the rows of ``a`` and ``b`` paired one to one at the least
+    total distance (every parameter but the rotation), each parameter within its TOLERANCE.
+    Returns the rows of ``b`` in ``a``'s order."""
+    from scipy.optimize import linear_sum_assignment
+
+    matched = [name for name in sorted(a) if name != "quats"]
+    x, y = rows_of(a, matched), rows_of(b, matched)
+    assert x.shape == y.shape
+    # one to one (a clone and its parent can be nearer to each other than to their own match)
+    _, order = linear_sum_assignment(torch.cdist(x, y).numpy())
+    nearest = torch.as_tensor(order)
+    for name, tolerance in TOLERANCE.items():
+        difference = (rows_of(a, [name]) - rows_of(b, [name])[nearest]).abs()
+        assert difference.max() <= tolerance, f"{name}: {float(difference.max()):.2e}"
+        assert (difference > 1e-5).float().mean() < 0.02, f"{name}: too many entries apart"
+    return nearest
+
+
+@pytest.fixture(scope="module")
+def runs(scene, tmp_path_factory):
+    """A 12-iteration run of three views a step on two processes of a slice each (the second renders
+    the last view again in every second round, adding nothing), and on one process."""
+    tmp = tmp_path_factory.mktemp("shard_runs")
+    common = dict(scene=scene, options=CLONES, checkpoint_every=0, batch_size=3)
+    two = ok(run_ranks("train", 2, tmp, timeout=120.0, out=tmp / "two", dist_mode="shards", **common))
+    one = ok([run_here("train", out=tmp / "one", **common)])[0]
+    return two, one, tmp
+
+
+def test_two_slices_train_as_one_process_with_every_gaussian(runs):
+    (r0, r1), one, tmp = runs
+    kinds = {key for event in one["events"] for key in event}
+    assert {"cloned", "pruned", "opacity_reset"} <= kinds, "the run must densify, prune and reset"
+    assert sum(event.get("cloned", 0) for event in one["events"]) > 0
+    assert len(r0["events"]) == len(one["events"])
+    for sharded, whole in zip(r0["events"], one["events"]):
+        for key in ("step", "cloned", "split", "pruned", "opacity_reset", "gaussians"):
+            assert sharded.get(key) == whole.get(key), (key, sharded, whole)
+    assert r0["metrics"] == {**one["metrics"], "processes": 2}
+    # the slices hold the scene between them, and the checkpoint holds all of it
+    assert r0["params"]["means"].shape[0] + r1["params"]["means"].shape[0] == one["metrics"]["num_gaussians"]
+    sharded = load_checkpoint(str(tmp / "two" / "checkpoint.pt"), map_location="cpu")
+    whole = load_checkpoint(str(tmp / "one" / "checkpoint.pt"), map_location="cpu")
+    assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+    ply = read_ply(str(tmp / "two" / "point_cloud.ply"))
+    torch.testing.assert_close(ply.means, sharded["model"]["params"]["means"])
+    # Adam's moments gathered with the parameters: their rows in the parameters' order
+    moments = {
+        group["name"]: sharded["optimizer"]["state"][index]["exp_avg_sq"]
+        for index, group in enumerate(sharded["optimizer"]["param_groups"])
+    }
+    assert moments["means"].shape == sharded["model"]["params"]["means"].shape
+    assert r0["test"]["views"] == 3
+    assert r0["test"]["psnr"] == pytest.approx(one["test"]["psnr"], abs=1e-3)
+    assert {"save_checkpoint", "write_ply", "write_json"} <= set(r0["writes"])
+    assert r1["writes"] == [], "only rank 0 writes"
+    with open(tmp / "two" / "metrics.json") as f:
+        metrics = json.load(f)
+    assert metrics["dist_mode"] == "shards" and sum(metrics["rows"]) == metrics["num_gaussians"]
+
+
+def test_a_sharded_checkpoint_resumes_on_its_slices_and_in_one_process(scene, runs, tmp_path):
+    """The run's checkpoint, whose slices grew apart in its densifications, resumed for four more
+    iterations on two processes (on the slices it records) and in one process: the same run."""
+    _, _, tmp = runs
+    import shutil
+
+    saved = load_checkpoint(str(tmp / "two" / "checkpoint.pt"), map_location="cpu")["rows"]
+    assert saved[0] != saved[1], "the slices should have grown apart"
+    for name in ("two", "one"):
+        shutil.copytree(tmp / "two", tmp_path / name)
+    resumed = dict(scene=scene, options=CLONES, checkpoint_every=0, batch_size=2, iters=16, resume=True)
+    ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **resumed))
+    ok([run_here("train", out=tmp_path / "one", **resumed)])
+    with open(tmp_path / "two" / "config.json") as f:
+        assert json.load(f)["rows"] == saved, "the resumed slices are the checkpoint's"
+    sharded, whole = (load_checkpoint(str(tmp_path / n / "checkpoint.pt"), map_location="cpu") for n in ("two", "one"))
+    assert sharded["step"] == whole["step"] == 16 and "rows" not in whole
+    assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+
+
+def test_a_sharded_run_resumes_sharded(scene, tmp_path):
+    """Stopped at iteration 4 and resumed to 6, half-way to its one densification (at 8): two
+    processes take the run that one process resumed from the same checkpoint takes, its statistics
+    included (the checkpoint's are summed over the processes already, and count once)."""
+    import shutil
+
+    common = dict(scene=scene, options={**CLONES, "densify_from": 7, "densify_every": 8}, checkpoint_every=0)
+    ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "first", iters=4, dist_mode="shards", **common))
+    for name in ("two", "one"):
+        shutil.copytree(tmp_path / "first", tmp_path / name)
+    resumed = dict(common, iters=6, resume=True)
+    ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **resumed))
+    ok([run_here("train", out=tmp_path / "one", **resumed)])
+    first, sharded, whole = (
+        load_checkpoint(str(tmp_path / name / "checkpoint.pt"), map_location="cpu") for name in ("first", "two", "one")
+    )
+    assert first["step"] == 4 and sharded["step"] == whole["step"] == 6
+    statistics = ("grad_sum", "count", "max_radius")
+    assert all(first["strategy_state"][key].abs().sum() > 0 for key in statistics), "the checkpoint must carry some"
+    nearest = assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+    for key in statistics:
+        torch.testing.assert_close(
+            sharded["strategy_state"][key], whole["strategy_state"][key][nearest], rtol=1e-5, atol=1e-9, msg=key
+        )
+
+
+def test_a_signal_on_one_process_stops_both_with_the_whole_scene_saved(scene, tmp_path):
+    """SIGTERM on rank 1 during iteration 6, a log point (every 2 iterations): both processes stop
+    there, and rank 0 writes the checkpoint and the PLY of every slice."""
+    outs = run_ranks(
+        "train", 2, tmp_path, timeout=120.0, scene=scene, out=tmp_path / "run", stop_at=6, dist_mode="shards"
+    )
+    r0, r1 = ok(outs)
+    assert r0["stopped"] == r1["stopped"] == "SIGTERM" and r0["step"] == r1["step"] == 6
+    assert {"save_checkpoint", "write_ply"} <= set(r0["writes"]) and r1["writes"] == []
+    state = load_checkpoint(str(tmp_path / "run" / "checkpoint.pt"), map_location="cpu")
+    ply = read_ply(str(tmp_path / "run" / "point_cloud.ply"))
+    assert state["step"] == 6
+    assert sum(state["rows"]) == state["model"]["params"]["means"].shape[0] == ply.means.shape[0]
+
+
+@pytest.mark.skipif(
+    not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
+    reason="needs two GPUs and NCCL",
+)
+def test_two_slices_on_two_gpus_train_as_one_gpu(scene, tmp_path, device):
+    """The same on two GPUs (NCCL): as close as CUDA's atomic sums let two runs be."""
+    if device == "cpu":
+        pytest.skip("NCCL on two GPUs (the CPU case is the test above)")
+    options = {**SCHEDULE, "clone_max_scale": 1e9}
+    gpus = dict(scene=scene, options=options, checkpoint_every=0, device="cuda", dist_backend="auto")
+    r0, r1 = ok(run_ranks("train", 2, tmp_path, timeout=300.0, out=tmp_path / "two", dist_mode="shards", **gpus))
+    one = ok([run_here("train", out=tmp_path / "one", **gpus)])[0]
+    assert [e["step"] for e in r0["events"]] == [e["step"] for e in one["events"]] == [4, 8]
+    assert r0["metrics"]["num_gaussians"] == pytest.approx(one["metrics"]["num_gaussians"], rel=0.05)
+    assert r0["params"]["means"].shape[0] + r1["params"]["means"].shape[0] == r0["metrics"]["num_gaussians"]
+    assert r0["test"]["psnr"] == pytest.approx(one["test"]["psnr"], abs=0.3)
+    assert r0["cuda_graph"] == {"off": "--dist-mode shards: its steps are not captured yet"}
+
+
+def test_refusals_name_the_option():
+    config = task_config("scene", "out", dist_mode="shards")
+    assert "two or more" in shard_refusal(config, 1)
+    assert shard_refusal(config, 2) is None
+    assert shard_refusal(config, 2, make_strategy("3dgs", {})) is None
+    assert shard_refusal(config, 2, make_strategy("absgs", {})) is None
+    assert "Γ" in shard_refusal(task_config("s", "o", strategy="cdc"), 2, make_strategy("cdc", {}))
+    assert "relocates" in shard_refusal(config, 2, make_strategy("mcmc", {}))
+    assert "--target-gaussians" in shard_refusal(config, 2, make_strategy("3dgs", {"target_gaussians": 100}))
+    assert "--budget-schedule" in shard_refusal(config, 2, make_strategy("fast", {}))
+    assert "--sync-free" in shard_refusal(task_config("s", "o", sync_free=True), 2)
+    assert "--cuda-graph" in shard_refusal(task_config("s", "o", cuda_graph=True), 2)
+    assert "selective" in shard_refusal(task_config("s", "o", optimizer="selective"), 2)
+    assert "--dist-exchange" in shard_refusal(task_config("s", "o", dist_exchange="colours"), 2)
+    assert "--resolution-schedule" in shard_refusal(task_config("s", "o", resolution_schedule="dash"), 2)
+
+
+def test_the_configurations_mode_picks_the_trainer():
+    assert type(Trainer(task_config("s", "o"))) is Trainer
+    assert type(Trainer(task_config("s", "o", dist_mode="shards"))) is ShardedTrainer
+    assert type(Trainer.__new__(Trainer)) is Trainer  # a bare one, as tests make
+
+    class Mine(Trainer):
+        pass
+
+    with pytest.raises(OptionError, match="Mine trains --dist-mode data, not shards"):
+        Mine(task_config("s", "o", dist_mode="shards"))
+
+
+def test_one_process_is_refused_before_the_scene_loads(tmp_path):
+    trainer = Trainer(task_config(tmp_path / "no_scene", tmp_path / "out", dist_mode="shards"), dict(SCHEDULE))
+    assert isinstance(trainer, ShardedTrainer)
+    with pytest.raises(OptionError, match="two or more"):
+        trainer.run()
+
+
+def test_even_rows():
+    assert even_rows(10, 3) == [4, 3, 3]
+    assert even_rows(2, 4) == [1, 1, 0, 0]
+    assert sum(even_rows(12345, 7)) == 12345
