@@ -126,45 +126,60 @@ def test_a_sharded_checkpoint_resumes_on_its_slices_and_in_one_process(scene, ru
     assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
 
 
-def test_a_sharded_run_resumes_sharded(scene, tmp_path):
-    """Stopped at iteration 4 and resumed to 6, half-way to its one densification (at 8): two
-    processes take the run that one process resumed from the same checkpoint takes, its statistics
-    included (the checkpoint's are summed over the processes already, and count once)."""
+def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path):
+    """CDC-GS (``cdc-only``: its draws without CAAT, so that the threshold leaves some Gaussians to
+    draw) on two slices: Γ measured over the gathered scene with the views split over the
+    processes, Ψ over the gathered means, the draws from the step's shared stream. To its first
+    densification (at 4) the same candidates, draws, correlations and Gaussians as one process with
+    every Gaussian. (After it the whole scene's order differs, each slice's clones after its own
+    Gaussians, so the same draws pick other Gaussians, alike in number.)"""
+    options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1}
+    common = dict(scene=scene, strategy="cdc-only", options=options, checkpoint_every=0, batch_size=2, iters=6)
+    r0, _ = ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **common))
+    one = ok([run_here("train", out=tmp_path / "one", **common)])[0]
+    assert len(r0["events"]) == len(one["events"]) == 1
+    for sharded, whole in zip(r0["events"], one["events"]):
+        for key in ("step", "densify_candidates", "prune_candidates", "cdc_densify", "cdc_prune", "cloned", "pruned"):
+            assert sharded.get(key) == whole.get(key), (key, sharded, whole)
+        assert sharded["gaussians"] == whole["gaussians"]
+        for key in ("correlation", "correlation_log_density", "correlation_rank"):
+            assert sharded[key] == pytest.approx(whole[key], abs=1e-4), key
+    assert sum(e["cdc_densify"] for e in one["events"]) > 0 and sum(e["cdc_prune"] for e in one["events"]) > 0
+    sharded, whole = (load_checkpoint(str(tmp_path / n / "checkpoint.pt"), map_location="cpu") for n in ("two", "one"))
+    assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+
+
+def test_a_sharded_run_stopped_by_a_signal_resumes_sharded(scene, tmp_path):
+    """SIGTERM on rank 1 during iteration 4, a log point: both processes stop there, rank 0 writes
+    the checkpoint and the PLY of every slice, half-way to the run's one densification (at 8).
+    Resumed to 6 on two processes it takes the run that one process resumed from the same
+    checkpoint takes, its statistics included (the checkpoint's are summed over the processes
+    already, and count once)."""
     import shutil
 
     common = dict(scene=scene, options={**CLONES, "densify_from": 7, "densify_every": 8}, checkpoint_every=0)
-    ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "first", iters=4, dist_mode="shards", **common))
+    first = tmp_path / "first"
+    r0, r1 = ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=first, stop_at=4, dist_mode="shards", **common))
+    assert r0["stopped"] == r1["stopped"] == "SIGTERM" and r0["step"] == r1["step"] == 4
+    assert {"save_checkpoint", "write_ply"} <= set(r0["writes"]) and r1["writes"] == []
+    ply = read_ply(str(first / "point_cloud.ply"))
     for name in ("two", "one"):
-        shutil.copytree(tmp_path / "first", tmp_path / name)
+        shutil.copytree(first, tmp_path / name)
     resumed = dict(common, iters=6, resume=True)
     ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **resumed))
     ok([run_here("train", out=tmp_path / "one", **resumed)])
-    first, sharded, whole = (
+    stopped, sharded, whole = (
         load_checkpoint(str(tmp_path / name / "checkpoint.pt"), map_location="cpu") for name in ("first", "two", "one")
     )
-    assert first["step"] == 4 and sharded["step"] == whole["step"] == 6
+    assert stopped["step"] == 4 and sharded["step"] == whole["step"] == 6
+    assert sum(stopped["rows"]) == stopped["model"]["params"]["means"].shape[0] == ply.means.shape[0]
     statistics = ("grad_sum", "count", "max_radius")
-    assert all(first["strategy_state"][key].abs().sum() > 0 for key in statistics), "the checkpoint must carry some"
+    assert all(stopped["strategy_state"][key].abs().sum() > 0 for key in statistics), "the checkpoint must carry some"
     nearest = assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
     for key in statistics:
         torch.testing.assert_close(
             sharded["strategy_state"][key], whole["strategy_state"][key][nearest], rtol=1e-5, atol=1e-9, msg=key
         )
-
-
-def test_a_signal_on_one_process_stops_both_with_the_whole_scene_saved(scene, tmp_path):
-    """SIGTERM on rank 1 during iteration 6, a log point (every 2 iterations): both processes stop
-    there, and rank 0 writes the checkpoint and the PLY of every slice."""
-    outs = run_ranks(
-        "train", 2, tmp_path, timeout=120.0, scene=scene, out=tmp_path / "run", stop_at=6, dist_mode="shards"
-    )
-    r0, r1 = ok(outs)
-    assert r0["stopped"] == r1["stopped"] == "SIGTERM" and r0["step"] == r1["step"] == 6
-    assert {"save_checkpoint", "write_ply"} <= set(r0["writes"]) and r1["writes"] == []
-    state = load_checkpoint(str(tmp_path / "run" / "checkpoint.pt"), map_location="cpu")
-    ply = read_ply(str(tmp_path / "run" / "point_cloud.ply"))
-    assert state["step"] == 6
-    assert sum(state["rows"]) == state["model"]["params"]["means"].shape[0] == ply.means.shape[0]
 
 
 @pytest.mark.skipif(
@@ -192,7 +207,9 @@ def test_refusals_name_the_option():
     assert shard_refusal(config, 2) is None
     assert shard_refusal(config, 2, make_strategy("3dgs", {})) is None
     assert shard_refusal(config, 2, make_strategy("absgs", {})) is None
-    assert "Γ" in shard_refusal(task_config("s", "o", strategy="cdc"), 2, make_strategy("cdc", {}))
+    assert shard_refusal(task_config("s", "o", strategy="cdc"), 2, make_strategy("cdc", {})) is None
+    online = make_strategy("cdc", {"complexity_schedule": "online"})
+    assert "--complexity-schedule online" in shard_refusal(task_config("s", "o", strategy="cdc"), 2, online)
     assert "relocates" in shard_refusal(config, 2, make_strategy("mcmc", {}))
     assert "--target-gaussians" in shard_refusal(config, 2, make_strategy("3dgs", {"target_gaussians": 100}))
     assert "--budget-schedule" in shard_refusal(config, 2, make_strategy("fast", {}))

@@ -353,12 +353,16 @@ class CDC(Consistency, ADC):
         threshold = self.grad_threshold
         selected = None
         if self.needs_complexity:
-            gamma, psi, stats = self.measure(ctx, state)
+            # Γ, Ψ and the draws over the whole scene; where the Gaussians are sharded, this
+            # process's rows of them (every process takes the same decisions over the scene).
+            scene, rows = (ctx, slice(None)) if ctx.whole_scene is None else ctx.whole_scene()
+            gamma, psi, stats = self.measure(scene, state)
             log.update(stats)
+            drawn, prune_extra, draws_log = self.consistency_draws(scene, gamma, psi)
+            log.update(draws_log)
+            gamma, drawn, prune_extra = gamma[rows], drawn[rows], prune_extra[rows]
             if self.caat:
                 threshold = caat_threshold(gamma, self.tau_low, self.tau_up, self.caat_lambda)
-            drawn, prune_extra, draws_log = self.consistency_draws(ctx, gamma, psi)
-            log.update(draws_log)
             selected = (mean_grad >= threshold) | drawn
         else:
             selected = mean_grad >= threshold

@@ -22,6 +22,13 @@ What a step does, with W processes and a batch of B views (B >= W):
    generator seeded by (seed, iteration, rank). The slices' new sizes are then exchanged.
 4. Adam steps each slice alone.
 
+CDC-GS's decisions need the whole scene: at a densification step the slices' geometry (11 floats a
+Gaussian) is gathered on every process, Γ is measured over it with the training views split over
+the processes (their maxima reduced, as data parallelism's Γ pass does), Ψ over its means, and the
+consistency draws come from the step's stream after its own draws, which every process shares:
+every process takes the same decisions over the whole scene, and each applies its own rows of them
+(CAAT's thresholds, the drawn candidates, the drawn prunes) to its slice.
+
 An evaluation gathers the slices on every process (the parameters only: no gradients, no
 moments) and scores each process's share of the test views as data parallelism does; a
 checkpoint and the PLY hold the whole scene (parameters, Adam's moments and the reduced
@@ -29,8 +36,7 @@ statistics, gathered a tensor at a time), so a run resumes on any number of proc
 or not. Every ``--check-ranks-every`` iterations the processes compare what they must share (the
 step, the view order, the SH degree and the slices' sizes).
 
-Not yet: strategies whose decisions need the whole scene at once (CDC-GS's Γ passes and Ψ, caps
-and targets of the Gaussian count, MCMC), selective Adam, the resolution schedule, the steps
+Not yet: CDC-GS's online Γ schedule, caps and targets of the Gaussian count, MCMC, selective Adam, the resolution schedule, the steps
 replayed as CUDA graphs (``--sync-free``), the viewer, and moving Gaussians between slices as they grow apart (the
 slices' sizes are in metrics.json). Each is refused with its reason (:func:`shard_refusal`).
 """
@@ -45,6 +51,7 @@ import torch
 
 from ..errors import NonFiniteError, OptionError
 from ..io import save_checkpoint, write_ply
+from ..render import start_bin_view
 from . import outputs
 from .config import TrainConfig, batch_rule
 from .distributed import RankDrift, step_seed
@@ -53,6 +60,7 @@ from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer
 from .shards import rasterize_shard
 from .strategies import make_strategy
+from .strategy import StepContext
 from .trainer import Trainer
 
 __all__ = ["ShardedTrainer", "even_rows", "shard_refusal"]
@@ -93,10 +101,10 @@ def shard_refusal(config: TrainConfig, world: int, strategy=None) -> str | None:
             f"--strategy {name} relocates Gaussians over the whole scene; --dist-mode shards trains 3DGS-style "
             "strategies"
         )
-    if getattr(strategy, "needs_complexity", False):
+    if getattr(strategy, "needs_complexity", False) and getattr(strategy, "complexity_schedule", "full") != "full":
         return (
-            f"--strategy {name} measures Γ over every view and Ψ over the whole scene at each densification step, "
-            "which --dist-mode shards does not do yet: use 3dgs or absgs"
+            "--complexity-schedule online adds each training render to Γ over this process's Gaussians, which "
+            "--dist-mode shards does not do yet: use the full schedule"
         )
     caps = [
         f"--{option.replace('_', '-')}"
@@ -257,6 +265,10 @@ class ShardedTrainer(Trainer):
             seen.append((loss, image_psnr, ctx))
         for _, _, ctx in seen:
             self.strategy.observe(ctx, self.strategy_state)
+        # The step's stream after its draws, the same on every process: the whole scene's draws of
+        # its refinements (CDC-GS's) come from it, as one process's would.
+        self._scene_generator = torch.Generator(device=self.device)
+        self._scene_generator.set_state(self.generator.get_state())
         for group in self.optimizer.param_groups:  # the sum over the batch's views, as its mean
             p = group["params"][0]
             if p.grad is not None and count != 1:
@@ -311,6 +323,50 @@ class ShardedTrainer(Trainer):
         if "gaussians" in merged:
             merged["gaussians"] = sum(self.rows)
         return merged
+
+    def _context(self, iteration: int, info=None, view_index: int | None = None) -> StepContext:
+        ctx = super()._context(iteration, info, view_index)
+        if info is None:  # a refinement's: decisions over the whole scene are taken there
+            ctx.whole_scene = lambda: self._whole_context(iteration)
+        return ctx
+
+    def _whole_context(self, iteration: int) -> tuple[StepContext, slice]:
+        """(a refinement's context over the whole scene, this slice's rows in it): the slices'
+        geometry gathered on every process (11 floats a Gaussian, no colours), its training views
+        binned from it, the processes' ranks (a Γ pass splits its views over them) and the step's
+        shared stream of random numbers."""
+        geometry = {
+            name: self._gather(self.model.params[name].detach())
+            for name in ("means", "log_scales", "quats", "opacity_logits")
+        }
+        count = geometry["means"].shape[0]
+        geometry["sh_dc"] = geometry["means"].new_zeros(count, 1, 3)
+        geometry["sh_rest"] = geometry["means"].new_zeros(count, 0, 3)
+        whole = GaussianModel(geometry, max_sh_degree=0)
+        with torch.no_grad():
+            shape = {"scales": whole.scales(), "opacities": whole.opacities()}
+        means, quats = whole.params["means"].detach(), whole.params["quats"].detach()
+        antialiased = self.config.antialiased
+
+        def bins(view_index: int, counted: bool = False):
+            return start_bin_view(means, quats, **shape, camera=self.cameras[view_index], antialiased=antialiased)
+
+        ctx = StepContext(
+            step=iteration,
+            total_steps=self.config.iters,
+            model=whole,
+            optimizer=None,
+            info=None,
+            view_index=None,
+            extent=self.scene.extent,
+            generator=self._scene_generator,
+            bins=bins,
+            views=self.scene.train,
+            complexity_maps=self.complexity_maps,
+            ranks=self.ranks,
+        )
+        start, end = self._span()
+        return ctx, slice(start, end)
 
     # --------------------------------------------------------------------- checks and signals
 

@@ -59,6 +59,12 @@ class StepContext:
     # --sync-free: an int32 device flag; while set, no hook may change anything on the device (the
     # step is taken again later). Pass it to the kernels that take ``halt``. None: never set.
     halt: Any = None
+    # --dist-mode shards, in ``refine``: whole_scene() -> (a context whose ``model`` is the whole
+    # scene's geometry, gathered from every process's slice, with ``bins``, ``ranks`` and a
+    # ``generator`` that every process shares; the slice of its rows that ``model`` here holds).
+    # Decisions over the whole scene (CDC-GS's Γ, Ψ and draws) are taken there, the same on every
+    # process. None: the model is the whole scene.
+    whole_scene: Callable | None = None
 
 
 @runtime_checkable
