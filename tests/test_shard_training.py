@@ -98,7 +98,11 @@ def test_two_slices_train_as_one_process_with_every_gaussian(runs):
     }
     assert moments["means"].shape == sharded["model"]["params"]["means"].shape
     assert r0["test"]["views"] == 3
+    # the test views rendered in rounds through the sharded render (rank 1 renders the third view
+    # again in the second round, and drops it)
     assert r0["test"]["psnr"] == pytest.approx(one["test"]["psnr"], abs=1e-3)
+    assert r0["test"]["ssim"] == pytest.approx(one["test"]["ssim"], abs=1e-5)
+    assert r0["test"]["num_gaussians"] == one["test"]["num_gaussians"]
     assert {"save_checkpoint", "write_ply", "write_json"} <= set(r0["writes"])
     assert r1["writes"] == [], "only rank 0 writes"
     with open(tmp / "two" / "metrics.json") as f:
@@ -180,6 +184,15 @@ def test_a_sharded_run_stopped_by_a_signal_resumes_sharded(scene, tmp_path):
         torch.testing.assert_close(
             sharded["strategy_state"][key], whole["strategy_state"][key][nearest], rtol=1e-5, atol=1e-9, msg=key
         )
+
+
+def test_a_process_that_dies_mid_run_stops_the_other(scene, tmp_path):
+    """Rank 1 exits after iteration 4: rank 0's next exchange fails with RankFailed (the command's
+    exit status 4), not with gloo's own error or a wait for the timeout."""
+    r0, r1 = run_ranks("train", 2, tmp_path, scene=scene, out=tmp_path / "run", die_at=4, dist_mode="shards")
+    assert r1["exitcode"] == 17
+    assert r0.get("error") == "RankFailed", r0
+    assert r0["seconds"] < 25
 
 
 @pytest.mark.skipif(

@@ -121,6 +121,7 @@ def evaluate(
     render=None,
     lpips: LpipsMetric | None = None,
     ranks=None,
+    render_round=None,
 ) -> dict:
     """Metrics over ``views`` (means over views) and, with ``save_dir``, one triptych PNG per view.
 
@@ -135,11 +136,30 @@ def evaluate(
     ``ranks`` (a :class:`cdcgs.train.distributed.Ranks` of several processes): each process
     scores the views ``rank``, ``rank + world``, ...; every process gets all the metrics, in the
     views' order, and only rank 0 writes the pictures (the others send theirs as PNG bytes).
+
+    ``render_round(round_views) -> image or None``: a render that every process of ``ranks`` takes
+    part in (a sharded scene's), used instead of ``render``. The views go in rounds, view
+    ``k * world + r`` to process r in round k (each process's share, as above); every process
+    calls it once a round with every process's view of the round (None past the views' end) and
+    gets its own image (None where its view is None).
     """
     if not views:
         return {"views": 0}
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     all_views, views = views, views[rank::world]
+    if render_round is not None:
+        rounds = -(-len(all_views) // world)
+
+        def draw(k: int):
+            round_views = [all_views[v] if v < len(all_views) else None for v in range(k * world, (k + 1) * world)]
+            return render_round(round_views)
+
+    else:
+        rounds = len(views)
+
+        def draw(k: int):
+            return render(model, views[k], background, antialiased)[0]  # the render's buffers go at once
+
     if render is None:
         cameras = {id(view): prepare_camera(view.viewmat, view.K, view.width, view.height) for view in views}
 
@@ -160,8 +180,11 @@ def evaluate(
     pictures = []  # (file name, PNG bytes) of this process's views, for rank 0 to write
     if save_dir and rank == 0:
         os.makedirs(save_dir, exist_ok=True)
-    for view in views:
-        image = render(model, view, background, antialiased)[0]  # the render's buffers go at once
+    for k in range(rounds):
+        image = draw(k)
+        if k >= len(views):  # a round past this process's share: it took part in the render only
+            continue
+        view = views[k]
         gt = view.image.to(device).float() / 255.0
         with float32_convolutions():  # kornia's SSIM is a convolution too: full float32, no cuDNN workspace
             score = ssim(image, gt).item()
@@ -186,8 +209,8 @@ def evaluate(
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     start = time.perf_counter()
-    for view in views:
-        render(model, view, background, antialiased)
+    for k in range(rounds):
+        draw(k)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     seconds = time.perf_counter() - start

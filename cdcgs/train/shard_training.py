@@ -29,8 +29,8 @@ consistency draws come from the step's stream after its own draws, which every p
 every process takes the same decisions over the whole scene, and each applies its own rows of them
 (CAAT's thresholds, the drawn candidates, the drawn prunes) to its slice.
 
-An evaluation gathers the slices on every process (the parameters only: no gradients, no
-moments) and scores each process's share of the test views as data parallelism does; a
+An evaluation renders the test views in rounds through the sharded render (each process its
+share of them, as data parallelism splits them) and scores them as data parallelism does; a
 checkpoint and the PLY hold the whole scene (parameters, Adam's moments and the reduced
 statistics, gathered a tensor at a time), so a run resumes on any number of processes, sharded
 or not. Every ``--check-ranks-every`` iterations the processes compare what they must share (the
@@ -51,7 +51,7 @@ import torch
 
 from ..errors import NonFiniteError, OptionError
 from ..io import save_checkpoint, write_ply
-from ..render import start_bin_view
+from ..render import prepare_camera, start_bin_view
 from . import outputs
 from .config import TrainConfig, batch_rule
 from .distributed import RankDrift, step_seed
@@ -152,6 +152,7 @@ class ShardedTrainer(Trainer):
         if refusal is None and any(getattr(c, "renders_beside_training", False) for c in self.callbacks):
             refusal = "--view renders the model of one process, which holds a slice under --dist-mode shards"
         sizes = {(camera.width, camera.height) for camera in self.cameras}
+        sizes |= {(view.width, view.height) for view in self.scene.test}
         if refusal is None and len(sizes) > 1:
             refusal = (
                 "--dist-mode shards renders the processes' views of a step together, at one image size; this scene "
@@ -414,10 +415,29 @@ class ShardedTrainer(Trainer):
             return None
         return GaussianModel(params, max_sh_degree=self.model.max_sh_degree, sh_degree=self.model.sh_degree)
 
-    def _evaluation_model(self) -> GaussianModel:
-        """The whole scene's parameters on every process while the evaluation runs (236 B a
-        Gaussian, no gradients or moments): each scores its share of the test views."""
-        return self.whole_model()
+    def _evaluate(self, final: bool, render_round=None) -> dict:
+        """The test views rendered in rounds through the sharded render (each process its share,
+        the others sending their slices' projections), scored as data parallelism scores them:
+        no process holds more of the scene than a training step does."""
+        cameras = {}
+
+        def render_round(round_views):
+            present = [view for view in round_views if view is not None]
+            for view in present:
+                if id(view) not in cameras:
+                    cameras[id(view)] = prepare_camera(view.viewmat, view.K, view.width, view.height)
+            # a process past the views' end renders the round's last view again, and drops it
+            picked = [cameras[id(view if view is not None else present[-1])] for view in round_views]
+            image, _, _ = rasterize_shard(
+                **self.model.render_args(),
+                cameras=picked,
+                rows=self.rows,
+                background=self.background,
+                antialiased=self.config.antialiased,
+            )
+            return image if round_views[self.ranks.rank] is not None else None
+
+        return super()._evaluate(final, render_round=render_round)
 
     def state_dict(self) -> dict | None:
         """The whole scene's checkpoint on rank 0, as one process's would be (every process takes

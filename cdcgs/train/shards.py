@@ -54,6 +54,7 @@ from ..render import (
     _ShColor,
     _start_bin,
 )
+from .distributed import RankFailed
 
 __all__ = ["FIELDS", "rasterize_shard"]
 
@@ -86,8 +87,15 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
         ops += [dist.P2POp(dist.isend, t, peer, group, tag) for tag, t in enumerate(sent) if t.numel()]
         ops += [dist.P2POp(dist.irecv, t, peer, group, tag) for tag, t in enumerate(received) if t.numel()]
     if ops:
-        for work in dist.batch_isend_irecv(ops):
-            work.wait()  # on NCCL: the current stream waits, not the host
+        try:
+            for work in dist.batch_isend_irecv(ops):
+                work.wait()  # on NCCL: the current stream waits, not the host
+        except (RuntimeError, OSError) as err:  # gloo's word for a peer that died, stopped or timed out
+            if isinstance(err, RankFailed):
+                raise
+            raise RankFailed(
+                f"rank {rank}: the sharded render's exchange failed, another process died, stopped or timed out ({err})"
+            ) from err
 
 
 class _Exchange(torch.autograd.Function):

@@ -686,24 +686,23 @@ class Trainer:
             "step_ms": step_ms,
         }
 
-    def _evaluation_model(self) -> GaussianModel:
-        """The Gaussians an evaluation renders: the whole scene (each process scores its share of
-        the test views)."""
-        return self.model
-
-    def _evaluate(self, final: bool) -> dict:
+    def _evaluate(self, final: bool, render_round=None) -> dict:
+        """The held-out metrics (every process its share of the test views); ``render_round``:
+        :func:`cdcgs.train.evaluate.evaluate`'s collective render, for a sharded scene."""
         self.check_numbers(params=True)
         self._peak_memory("train")  # the LPIPS networks' activations are not the training's memory
         save_dir = os.path.join(self.out, "test_renders") if (final and self.config.save_renders) else None
         metrics = evaluate(
-            self._evaluation_model(),
+            self.model,
             self.scene.test,
             background=self.background,
             antialiased=self.config.antialiased,
             save_dir=save_dir,
             lpips=self.lpips,
             ranks=self.ranks if self.ranks.distributed else None,
+            render_round=render_round,
         )
+        metrics["num_gaussians"] = self.num_gaussians
         self._peak_memory("eval")
         summary = {k: metrics.get(k) for k in ("psnr", "ssim", "lpips_vgg", "lpips_alex", "num_gaussians")}
         self.history["eval"].append({"step": self.step, **summary, **allocator_now(self.device)})
