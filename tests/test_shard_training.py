@@ -130,15 +130,19 @@ def test_a_sharded_checkpoint_resumes_on_its_slices_and_in_one_process(scene, ru
     assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
 
 
-def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path):
-    """CDC-GS (``cdc-only``: its draws without CAAT, so that the threshold leaves some Gaussians to
-    draw) on two slices: Γ measured over the gathered scene with the views split over the
-    processes, Ψ over the gathered means, the draws from the step's shared stream. To its first
-    densification (at 4) the same candidates, draws, correlations and Gaussians as one process with
-    every Gaussian. (After it the whole scene's order differs, each slice's clones after its own
-    Gaussians, so the same draws pick other Gaussians, alike in number.)"""
+@pytest.mark.parametrize("strategy", ["cdc-only", "cdc"])
+def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path, strategy):
+    """CDC-GS on two slices: Γ measured over the gathered scene with the views split over the
+    processes, Ψ over the gathered means, the draws from the step's shared stream; ``cdc-only``
+    (its draws without CAAT) and ``cdc`` (with CAAT's thresholds, raised so that they leave some
+    Gaussians to draw). To its first densification (at 4) the same candidates, draws, correlations
+    and Gaussians as one process with every Gaussian. (After it the whole scene's order differs,
+    each slice's clones after its own Gaussians, so the same draws pick other Gaussians, alike in
+    number.)"""
     options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1}
-    common = dict(scene=scene, strategy="cdc-only", options=options, checkpoint_every=0, batch_size=2, iters=6)
+    if strategy == "cdc":
+        options.update(tau_low=1.5e-3, tau_up=2.5e-3)
+    common = dict(scene=scene, strategy=strategy, options=options, checkpoint_every=0, batch_size=2, iters=6)
     r0, _ = ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **common))
     one = ok([run_here("train", out=tmp_path / "one", **common)])[0]
     assert len(r0["events"]) == len(one["events"]) == 1
@@ -187,9 +191,21 @@ def test_a_sharded_run_stopped_by_a_signal_resumes_sharded(scene, tmp_path):
 
 
 def test_a_process_that_dies_mid_run_stops_the_other(scene, tmp_path):
-    """Rank 1 exits after iteration 4: rank 0's next exchange fails with RankFailed (the command's
-    exit status 4), not with gloo's own error or a wait for the timeout."""
-    r0, r1 = run_ranks("train", 2, tmp_path, scene=scene, out=tmp_path / "run", die_at=4, dist_mode="shards")
+    """Rank 1 exits after iteration 4 (no log point there: rank 0's next collective is the render's
+    exchange): rank 0 fails with RankFailed (the command's exit status 4), not with gloo's own error
+    or a wait for the timeout."""
+    options = {**SCHEDULE, "densify_from": 20}  # no refinement after 4 either
+    r0, r1 = run_ranks(
+        "train",
+        2,
+        tmp_path,
+        scene=scene,
+        out=tmp_path / "run",
+        die_at=4,
+        dist_mode="shards",
+        log_every=12,
+        options=options,
+    )
     assert r1["exitcode"] == 17
     assert r0.get("error") == "RankFailed", r0
     assert r0["seconds"] < 25

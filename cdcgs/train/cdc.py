@@ -360,7 +360,9 @@ class CDC(Consistency, ADC):
             log.update(stats)
             drawn, prune_extra, draws_log = self.consistency_draws(scene, gamma, psi)
             log.update(draws_log)
-            gamma, drawn, prune_extra = gamma[rows], drawn[rows], prune_extra[rows]
+            # this slice's rows, copied: the whole scene's tensors go before the surgery
+            gamma, drawn, prune_extra = gamma[rows].clone(), drawn[rows].clone(), prune_extra[rows].clone()
+            del scene, psi
             if self.caat:
                 threshold = caat_threshold(gamma, self.tau_low, self.tau_up, self.caat_lambda)
             selected = (mean_grad >= threshold) | drawn

@@ -141,7 +141,8 @@ def evaluate(
     part in (a sharded scene's), used instead of ``render``. The views go in rounds, view
     ``k * world + r`` to process r in round k (each process's share, as above); every process
     calls it once a round with every process's view of the round (None past the views' end) and
-    gets its own image (None where its view is None).
+    gets its own image (None where its view is None). ``num_gaussians`` is then ``model.num``, this
+    process's slice (:meth:`cdcgs.train.trainer.Trainer._evaluate` puts the scene's there).
     """
     if not views:
         return {"views": 0}
@@ -160,7 +161,7 @@ def evaluate(
         def draw(k: int):
             return render(model, views[k], background, antialiased)[0]  # the render's buffers go at once
 
-    if render is None:
+    if render is None and render_round is None:
         cameras = {id(view): prepare_camera(view.viewmat, view.K, view.width, view.height) for view in views}
 
         def render(model, view, background, antialiased):

@@ -24,7 +24,7 @@ What a step does, with W processes and a batch of B views (B >= W):
 
 CDC-GS's decisions need the whole scene: at a densification step the slices' geometry (11 floats a
 Gaussian) is gathered on every process, Γ is measured over it with the training views split over
-the processes (their maxima reduced, as data parallelism's Γ pass does), Ψ over its means, and the
+the processes (reduced as data parallelism's Γ pass reduces them), Ψ over its means, and the
 consistency draws come from the step's stream after its own draws, which every process shares:
 every process takes the same decisions over the whole scene, and each applies its own rows of them
 (CAAT's thresholds, the drawn candidates, the drawn prunes) to its slice.
@@ -67,6 +67,8 @@ __all__ = ["ShardedTrainer", "even_rows", "shard_refusal"]
 
 # Logged counts of a refinement that add up over the slices; every other entry is rank 0's.
 SUMMED_LOGS = ("cloned", "split", "pruned", "periodic_prune")
+# Logged counts of decisions over the whole scene, which every process must take alike.
+SHARED_DECISIONS = ("densify_candidates", "prune_candidates", "cdc_densify", "cdc_prune")
 
 
 def even_rows(count: int, world: int) -> list[int]:
@@ -266,10 +268,11 @@ class ShardedTrainer(Trainer):
             seen.append((loss, image_psnr, ctx))
         for _, _, ctx in seen:
             self.strategy.observe(ctx, self.strategy_state)
-        # The step's stream after its draws, the same on every process: the whole scene's draws of
-        # its refinements (CDC-GS's) come from it, as one process's would.
-        self._scene_generator = torch.Generator(device=self.device)
-        self._scene_generator.set_state(self.generator.get_state())
+        # The step's stream after its draws (its backgrounds), the same on every process: the
+        # whole scene's draws of its refinements (CDC-GS's) come from it, as one process's would.
+        if any(self.strategy.refines_at(iteration) for iteration in range(first, last + 1)):
+            self._scene_generator = torch.Generator(device=self.device)
+            self._scene_generator.set_state(self.generator.get_state())
         for group in self.optimizer.param_groups:  # the sum over the batch's views, as its mean
             p = group["params"][0]
             if p.grad is not None and count != 1:
@@ -313,6 +316,12 @@ class ShardedTrainer(Trainer):
         restarted = any(mine[key] is not rows_of_mine[key] for key in kinds)  # the strategy began them anew
         self.rows = [int(n) for n in self.ranks.all_gather_object(self.model.num)]
         logs = self.ranks.all_gather_object(log)
+        decided = [{key: each.get(key) for key in SHARED_DECISIONS} for each in logs]
+        if any(each != decided[0] for each in decided):
+            raise RankDrift(
+                f"at iteration {iteration} the processes took different decisions over the whole scene ({decided}): "
+                "the sharded run is no longer one run; its last checkpoint is the last good state"
+            )
         if any(restarted for restarted in self.ranks.all_gather_object(restarted)):
             self.strategy_state = {**whole, **self.strategy.initialize_state(_Scene(sum(self.rows), self.device))}
         if not log:

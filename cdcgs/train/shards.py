@@ -94,7 +94,8 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
             if isinstance(err, RankFailed):
                 raise
             raise RankFailed(
-                f"rank {rank}: the sharded render's exchange failed, another process died, stopped or timed out ({err})"
+                f"rank {rank}: the sharded render's exchange failed; another process may have died, stopped or timed "
+                f"out ({err})"
             ) from err
 
 
