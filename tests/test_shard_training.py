@@ -211,6 +211,23 @@ def test_a_process_that_dies_mid_run_stops_the_other(scene, tmp_path):
     assert r0["seconds"] < 25
 
 
+def test_the_timed_steps_exchanges_are_measured(scene, tmp_path):
+    """22 views two at a time: step 10 (iterations 21 and 22) is the timed one, as in data
+    parallelism; its exchanges' waits and transfers are parts of its time, and the bytes are the
+    slices' fields both ways."""
+    ok(run_ranks("train", 2, tmp_path, timeout=120.0, scene=scene, out=tmp_path / "run", iters=22, dist_mode="shards"))
+    with open(tmp_path / "run" / "metrics.json") as f:
+        metrics = json.load(f)
+    comm = metrics["communication"]
+    assert (comm["timed_steps"], comm["backend"], len(comm["per_process"])) == (1, "gloo", 2), comm
+    total = metrics["num_gaussians"]
+    for own, rows in zip(comm["per_process"], metrics["rows"]):
+        assert own["exchanged_by"] == "the sharded render's point-to-point transfers"
+        assert own["wait_ms_per_step"] > 0 and 0 < own["all_reduce_ms_per_step"] < own["step_ms"], own
+        assert own["all_reduce_bytes_per_step"] == (rows + (total - rows)) * 88  # one round, two processes
+    assert comm["share"] == pytest.approx(comm["all_reduce_ms_per_step"] / comm["step_ms"])
+
+
 @pytest.mark.skipif(
     not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
     reason="needs two GPUs and NCCL",

@@ -61,7 +61,7 @@ from .ops import load_optimizer_state, make_optimizer
 from .shards import rasterize_shard
 from .strategies import make_strategy
 from .strategy import StepContext
-from .trainer import Trainer
+from .trainer import TIME_COMMUNICATION_EVERY, Trainer
 
 __all__ = ["ShardedTrainer", "even_rows", "shard_refusal"]
 
@@ -236,6 +236,13 @@ class ShardedTrainer(Trainer):
         first = self.step + 1
         count = min(config.batch_size, config.iters - self.step)
         last = self.step + count
+        # One step in TIME_COMMUNICATION_EVERY (the one data parallelism times) is timed: its
+        # exchanges wait for the device and the other processes around them.
+        timed = (first // config.batch_size) % TIME_COMMUNICATION_EVERY == 10
+        timer = [0.0, 0.0] if timed else None  # [wait, transfer] seconds of the step's exchanges
+        if timed:
+            self._synchronize()
+            step_start = time.perf_counter()
         views, backgrounds = self._start_step(first, last)
         seen = []
         for round_start in range(0, count, world):
@@ -249,6 +256,7 @@ class ShardedTrainer(Trainer):
                     rows=self.rows,
                     background=backgrounds[position],
                     antialiased=config.antialiased,
+                    exchange_timer=timer,
                 )
             except NonFiniteError:  # raised on every process at once
                 self._nonfinite_at = first + position
@@ -294,6 +302,14 @@ class ShardedTrainer(Trainer):
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.after_step(self._context(last), self.strategy_state)
+        if timed:
+            self._synchronize()
+            step_ms = (time.perf_counter() - step_start) * 1e3
+            # each round: this slice's 12 numbers a Gaussian (48 bytes) to the other views and back
+            # 10 (40 bytes), and the other slices' for this process's view
+            mine, total = self.rows[rank], sum(self.rows)
+            moved = -(-count // world) * ((world - 1) * mine + (total - mine)) * (48 + 40)
+            self._communication.append((timer[0] * 1e3, timer[1] * 1e3, step_ms, moved))
         merged = {}
         for _, log in self.step_events:
             merged.update(log)
@@ -488,6 +504,16 @@ class ShardedTrainer(Trainer):
                     whole = GaussianModel.from_state_dict(state["model"])
                     write_ply(os.path.join(self.out, outputs.PLY), whole.to_ply())
             self.saved_step = self.step
+
+    def _communication_summary(self) -> dict:
+        """As data parallelism's, where the exchanges are the sharded render's: its
+        ``all_reduce_*`` entries hold their transfers (forward and backward, in every round of the
+        timed step) and the bytes this process sent and received, ``wait_ms_per_step`` the waits for
+        the other processes before each."""
+        summary = super()._communication_summary()
+        if summary["timed_steps"]:
+            summary["exchanged_by"] = "the sharded render's point-to-point transfers"
+        return summary
 
     def _result_extras(self) -> dict:
         return {"dist_mode": "shards", "rows": list(self.rows)}

@@ -34,6 +34,8 @@ evaluation and the files gathered) builds on it and is not there yet.
 
 from __future__ import annotations
 
+import time
+
 import torch
 import torch.distributed as dist
 
@@ -71,12 +73,27 @@ def _peer(group, rank: int) -> int:
     return rank if group is None else dist.get_global_rank(group, rank)
 
 
-def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]], group) -> None:
+def _settled(device: torch.device) -> float:
+    """time.perf_counter() once ``device``'s queued work is done."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
+
+
+def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]], group, timer=None) -> None:
     """Send ``outgoing[r]`` (a list of tensors) to process r and fill ``incoming[r]`` from it, for
     every r, as one group of point-to-point transfers: each tensor goes as it lies, with no packing
     (this process's own part is copied). Tensors with no elements are skipped on both sides; the
-    processes agree on every size."""
+    processes agree on every size. ``timer`` ([wait, transfer] seconds, or None): the device's
+    queued work is waited for, then the other processes (a one-number all-reduce), each added to
+    its entry, then the transfers, timed to their end."""
     rank = dist.get_rank(group)
+    if timer is not None:
+        device = outgoing[rank][0].device
+        start = _settled(device)
+        dist.all_reduce(torch.zeros(1, device=device), group=group)
+        middle = _settled(device)
+        timer[0] += middle - start
     ops = []
     for r, (sent, received) in enumerate(zip(outgoing, incoming)):
         if r == rank:
@@ -90,6 +107,8 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
         try:
             for work in dist.batch_isend_irecv(ops):
                 work.wait()  # on NCCL: the current stream waits, not the host
+            if timer is not None:
+                timer[1] += _settled(device) - middle
         except (RuntimeError, OSError) as err:  # gloo's word for a peer that died, stopped or timed out
             if isinstance(err, RankFailed):
                 raise
@@ -102,7 +121,7 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
 class _Exchange(torch.autograd.Function):
     """Each view's fields to the process that renders it, field by field; their gradients back.
 
-    Inputs: ``layout`` (send_rows, receive_rows, group); this process's flags, which every other
+    Inputs: ``layout`` (send_rows, receive_rows, group, timer: see :func:`_swap`); this process's flags, which every other
     process receives beside the fields; then the fields of view 0 (FIELDS, in order), of view 1,
     .... Returns the received fields (each [sum(receive_rows), width], [sum(receive_rows)] where
     the width is 1, in process order) and the flags of every process [W, F]. The gradients are
@@ -110,7 +129,7 @@ class _Exchange(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, layout, flags, *fields):
-        send_rows, receive_rows, group = layout
+        send_rows, receive_rows, group, timer = layout
         world = len(send_rows)
         per_view = [fields[v * len(FIELDS) : (v + 1) * len(FIELDS)] for v in range(world)]
         device = flags.device
@@ -123,7 +142,7 @@ class _Exchange(torch.autograd.Function):
         incoming = [
             [t[offsets[r] : offsets[r] + receive_rows[r]] for t in received] + [every_flags[r]] for r in range(world)
         ]
-        _swap([[*per_view[r], flags] for r in range(world)], incoming, group)
+        _swap([[*per_view[r], flags] for r in range(world)], incoming, group, timer)
         ctx.layout = layout
         ctx.device = device
         ctx.mark_non_differentiable(received[-1], every_flags)
@@ -132,7 +151,7 @@ class _Exchange(torch.autograd.Function):
     @staticmethod
     def backward(ctx, *grads):
         """The differentiable fields' gradients travel back; the radii's and flags' are none."""
-        send_rows, receive_rows, group = ctx.layout
+        send_rows, receive_rows, group, timer = ctx.layout
         world = len(send_rows)
         offsets = [sum(receive_rows[:r]) for r in range(world)]
         device = ctx.device
@@ -149,7 +168,7 @@ class _Exchange(torch.autograd.Function):
             ]
             for v in range(world)
         ]
-        _swap([[g[offsets[r] : offsets[r] + receive_rows[r]] for g in grads] for r in range(world)], back, group)
+        _swap([[g[offsets[r] : offsets[r] + receive_rows[r]] for g in grads] for r in range(world)], back, group, timer)
         out = [None, None]
         for v in range(world):
             out += back[v] + [None]  # no gradient for the radii
@@ -172,6 +191,7 @@ def rasterize_shard(
     visible_only: bool = False,
     capacity: int | None = None,
     group=None,
+    exchange_timer: list[float] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
     """This process's view of the whole scene, rendered from the slices of all processes.
 
@@ -200,6 +220,11 @@ def rasterize_shard(
     overflowed its slots. That last one is this process's alone: a caller that stops on it must
     agree on it with the others first (e.g. an all-reduce of the flags), or they wait for it in
     the next exchange.
+
+    ``exchange_timer``: [wait, transfer] seconds that every exchange of this render (forward, and
+    the backward pass's) adds to: it waits for the device, then for the other processes (a
+    one-number all-reduce: the wait), then times the transfers (for a step whose communication is
+    measured: each wait holds the host back; every process must pass one or none).
 
     Unlike :func:`cdcgs.render.rasterize`: no ``render_depth``; ``background`` is not checked for
     NaN, and a background that requires grad gets this view's gradient alone. A wrong tensor on one
@@ -285,7 +310,7 @@ def rasterize_shard(
             counts = torch.stack([each.sum() for each in seen]).to(torch.int32)
             outgoing = [[torch.cat([counts[r : r + 1], flags])] for r in range(world)]
             incoming = torch.empty(world, 1 + flags.shape[0], dtype=torch.int32, device=device)
-            _swap(outgoing, [[incoming[r]] for r in range(world)], group)
+            _swap(outgoing, [[incoming[r]] for r in range(world)], group, exchange_timer)
             # the step's one read of the counts, both ways, and of every process's flags
             values = torch.cat([counts, incoming.amax(0)[1:], incoming[:, 0]]).tolist()
             _raise_flagged(wrong, values[world:-world])
@@ -293,7 +318,7 @@ def rasterize_shard(
             picked = [each.nonzero().squeeze(1) for each in seen]
             views = [[field.index_select(0, keep) for field in fields] for fields, keep in zip(views, picked)]
         *received, every_flags = _Exchange.apply(
-            (send_rows, receive_rows, group), flags, *(field for fields in views for field in fields)
+            (send_rows, receive_rows, group, exchange_timer), flags, *(field for fields in views for field in fields)
         )
         if wrong is not None and capacity is None:  # the others raise at their count read
             every_flags.tolist()  # its transfers done before it raises (and perhaps leaves the group)
