@@ -9,6 +9,7 @@ import contextlib
 import ctypes
 import functools
 import threading
+import time
 
 import torch
 import warp as wp
@@ -16,6 +17,7 @@ import warp as wp
 __all__ = [
     "BRIDGE",
     "TorchWarpBridge",
+    "device_clock",
     "ensure_warp",
     "halt_arg",
     "launch",
@@ -36,6 +38,13 @@ _VECTOR_TYPES = {
     wp.vec2i: (torch.int32, 2),
     wp.vec4i: (torch.int32, 4),
 }
+
+
+def device_clock(device: torch.device) -> float:
+    """time.perf_counter() once ``device``'s queued work is done (a synchronisation on CUDA)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter()
 
 
 def ensure_warp() -> None:

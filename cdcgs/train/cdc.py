@@ -19,11 +19,11 @@ paper, and the 3DGS baseline, is a configuration of this one class (:mod:`cdcgs.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import torch
 
+from .._interop import device_clock
 from ..complexity import AGGREGATIONS, METHODS, W_MAX_RULES, ViewComplexity, complexity_over_views
 from ..errors import OptionError
 from ..neighbors import density
@@ -229,11 +229,11 @@ class Consistency:
         (``gamma_seconds``, ``psi_seconds``, the device synchronised around each) and, when
         logged, their correlations."""
         device = ctx.model.device
-        start = _clock(device)
+        start = device_clock(device)
         gamma = self.complexity(ctx, state)
-        middle = _clock(device)
+        middle = device_clock(device)
         psi = density(ctx.model.params["means"].detach(), self.neighbours)
-        log = {"gamma_seconds": middle - start, "psi_seconds": _clock(device) - middle}
+        log = {"gamma_seconds": middle - start, "psi_seconds": device_clock(device) - middle}
         return gamma, psi, {**(correlations(gamma, psi) if self.log_correlation else {}), **log}
 
     def consistency_draws(
@@ -274,13 +274,6 @@ class Consistency:
             prune = draw(weights, math.floor(self.rho_prune * n), ctx.generator)
             log["cdc_prune"] = int(prune.sum())
         return densify, prune, log
-
-
-def _clock(device: torch.device) -> float:
-    """time.perf_counter() once the device's queued work is done."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter()
 
 
 @dataclass(kw_only=True)

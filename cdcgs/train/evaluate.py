@@ -148,10 +148,16 @@ def evaluate(
         return {"views": 0}
     rank, world = (ranks.rank, ranks.world) if ranks is not None else (0, 1)
     all_views, views = views, views[rank::world]
+    if render is None and render_round is None:
+        cameras = {id(view): prepare_camera(view.viewmat, view.K, view.width, view.height) for view in views}
+
+        def render(model, view, background, antialiased):
+            return render_view(model, view, background, antialiased, camera=cameras[id(view)])
+
     if render_round is not None:
         rounds = -(-len(all_views) // world)
 
-        def draw(k: int):
+        def draw(k: int):  # this process's image of round k, or None past its share
             round_views = [all_views[v] if v < len(all_views) else None for v in range(k * world, (k + 1) * world)]
             return render_round(round_views)
 
@@ -160,12 +166,6 @@ def evaluate(
 
         def draw(k: int):
             return render(model, views[k], background, antialiased)[0]  # the render's buffers go at once
-
-    if render is None and render_round is None:
-        cameras = {id(view): prepare_camera(view.viewmat, view.K, view.width, view.height) for view in views}
-
-        def render(model, view, background, antialiased):
-            return render_view(model, view, background, antialiased, camera=cameras[id(view)])
 
     device = model.device
     lpips = lpips if lpips is not None else lpips_metric(device)

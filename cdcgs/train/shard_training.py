@@ -338,7 +338,7 @@ class ShardedTrainer(Trainer):
                 f"at iteration {iteration} the processes took different decisions over the whole scene ({decided}): "
                 "the sharded run is no longer one run; its last checkpoint is the last good state"
             )
-        if any(restarted for restarted in self.ranks.all_gather_object(restarted)):
+        if any(self.ranks.all_gather_object(restarted)):
             self.strategy_state = {**whole, **self.strategy.initialize_state(_Scene(sum(self.rows), self.device))}
         if not log:
             return {}

@@ -28,18 +28,17 @@ render reads its intersection count on the host, as :func:`cdcgs.render.rasteriz
 the device. With ``capacity`` nothing is read on the host (``info.check()`` reads it later), so a
 step can be captured as a CUDA graph.
 
-This module is the render; a training on shards (densification per slice, Adam per slice, the
-evaluation and the files gathered) builds on it and is not there yet.
+This module is the render; the training on shards (``--dist-mode shards``: densification,
+statistics and Adam per slice, the evaluation in rounds, the files gathered) is
+:mod:`cdcgs.train.shard_training`.
 """
 
 from __future__ import annotations
 
-import time
-
 import torch
 import torch.distributed as dist
 
-from .._interop import torch_tensor, warp_scope
+from .._interop import device_clock, torch_tensor, warp_scope
 from ..errors import PeerError
 from ..kernels._constants import MAX_SH_DEGREE
 from ..kernels.binning import finish_binning_within
@@ -73,13 +72,6 @@ def _peer(group, rank: int) -> int:
     return rank if group is None else dist.get_global_rank(group, rank)
 
 
-def _settled(device: torch.device) -> float:
-    """time.perf_counter() once ``device``'s queued work is done."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter()
-
-
 def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]], group, timer=None) -> None:
     """Send ``outgoing[r]`` (a list of tensors) to process r and fill ``incoming[r]`` from it, for
     every r, as one group of point-to-point transfers: each tensor goes as it lies, with no packing
@@ -88,12 +80,6 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
     queued work is waited for, then the other processes (a one-number all-reduce), each added to
     its entry, then the transfers, timed to their end."""
     rank = dist.get_rank(group)
-    if timer is not None:
-        device = outgoing[rank][0].device
-        start = _settled(device)
-        dist.all_reduce(torch.zeros(1, device=device), group=group)
-        middle = _settled(device)
-        timer[0] += middle - start
     ops = []
     for r, (sent, received) in enumerate(zip(outgoing, incoming)):
         if r == rank:
@@ -105,10 +91,16 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
         ops += [dist.P2POp(dist.irecv, t, peer, group, tag) for tag, t in enumerate(received) if t.numel()]
     if ops:
         try:
+            if timer is not None:
+                device = outgoing[rank][0].device
+                start = device_clock(device)
+                dist.all_reduce(torch.zeros(1, device=device), group=group)
+                middle = device_clock(device)
+                timer[0] += middle - start
             for work in dist.batch_isend_irecv(ops):
                 work.wait()  # on NCCL: the current stream waits, not the host
             if timer is not None:
-                timer[1] += _settled(device) - middle
+                timer[1] += device_clock(device) - middle
         except (RuntimeError, OSError) as err:  # gloo's word for a peer that died, stopped or timed out
             if isinstance(err, RankFailed):
                 raise
@@ -121,11 +113,11 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
 class _Exchange(torch.autograd.Function):
     """Each view's fields to the process that renders it, field by field; their gradients back.
 
-    Inputs: ``layout`` (send_rows, receive_rows, group, timer: see :func:`_swap`); this process's flags, which every other
-    process receives beside the fields; then the fields of view 0 (FIELDS, in order), of view 1,
-    .... Returns the received fields (each [sum(receive_rows), width], [sum(receive_rows)] where
-    the width is 1, in process order) and the flags of every process [W, F]. The gradients are
-    float32, as the fields."""
+    Inputs: ``layout`` (send_rows, receive_rows, group, timer: see :func:`_swap`); this process's
+    flags, which every other process receives beside the fields; then the fields of view 0
+    (FIELDS, in order), of view 1, .... Returns the received fields (each [sum(receive_rows),
+    width], [sum(receive_rows)] where the width is 1, in process order) and the flags of every
+    process [W, F]. The gradients are float32, as the fields."""
 
     @staticmethod
     def forward(ctx, layout, flags, *fields):
