@@ -3,6 +3,7 @@ with gloo: two processes, each holding a slice of the scene, against one process
 batches with every Gaussian."""
 
 import json
+import os
 
 import pytest
 import torch
@@ -228,6 +229,26 @@ def test_the_timed_steps_exchanges_are_measured(scene, tmp_path):
     assert comm["share"] == pytest.approx(comm["all_reduce_ms_per_step"] / comm["step_ms"])
 
 
+def test_replayed_sharded_steps_are_the_eager_ones(scene, tmp_path):
+    """40 iterations of two views a step on two slices: the steps replayed from graphs (on the CPU
+    the same body, one operation at a time), with slots of exactly each view's last count so that
+    renders of grown Gaussians overflow them and both processes go back together, train the bits of
+    the steps that read every count."""
+    runs = {}
+    for name, options in (("eager", {}), ("replayed", {"cuda_graph": True, "tight_slots": True})):
+        common = dict(scene=scene, out=tmp_path / name, iters=40, dist_mode="shards", timeout=120.0)
+        runs[name] = ok(run_ranks("train", 2, tmp_path, **common, **options))
+    for eager, replayed in zip(runs["eager"], runs["replayed"]):
+        assert eager["cuda_graph"]["off"].startswith("--cuda-graph replays steps on CUDA")
+        assert replayed["cuda_graph"]["replayed_steps"] > 0, replayed["cuda_graph"]
+        assert replayed["sync_free"]["rewinds"] > 0, replayed["sync_free"]
+        # each iteration's parameters as last taken (the steps taken again after a rewind replace theirs)
+        assert dict(replayed["checksums"]) == dict(eager["checksums"])
+        assert len(dict(eager["checksums"])) == 20
+    assert runs["replayed"][0]["sync_free"] == runs["replayed"][1]["sync_free"]
+    assert runs["replayed"][0]["cuda_graph"]["replayed_steps"] == runs["replayed"][1]["cuda_graph"]["replayed_steps"]
+
+
 @pytest.mark.skipif(
     not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
     reason="needs two GPUs and NCCL",
@@ -244,7 +265,7 @@ def test_two_slices_on_two_gpus_train_as_one_gpu(scene, tmp_path, device):
     assert r0["metrics"]["num_gaussians"] == pytest.approx(one["metrics"]["num_gaussians"], rel=0.05)
     assert r0["params"]["means"].shape[0] + r1["params"]["means"].shape[0] == r0["metrics"]["num_gaussians"]
     assert r0["test"]["psnr"] == pytest.approx(one["test"]["psnr"], abs=0.3)
-    assert r0["cuda_graph"] == {"off": "--dist-mode shards: its steps are not captured yet"}
+    assert r0["cuda_graph"]["replayed_steps"] == r1["cuda_graph"]["replayed_steps"] > 0, r0["cuda_graph"]
 
 
 def test_refusals_name_the_option():
@@ -259,8 +280,7 @@ def test_refusals_name_the_option():
     assert "relocates" in shard_refusal(config, 2, make_strategy("mcmc", {}))
     assert "--target-gaussians" in shard_refusal(config, 2, make_strategy("3dgs", {"target_gaussians": 100}))
     assert "--budget-schedule" in shard_refusal(config, 2, make_strategy("fast", {}))
-    assert "--sync-free" in shard_refusal(task_config("s", "o", sync_free=True), 2)
-    assert "--cuda-graph" in shard_refusal(task_config("s", "o", cuda_graph=True), 2)
+    assert shard_refusal(task_config("s", "o", sync_free=True, cuda_graph=True), 2) is None
     assert "selective" in shard_refusal(task_config("s", "o", optimizer="selective"), 2)
     assert "--dist-exchange" in shard_refusal(task_config("s", "o", dist_exchange="colours"), 2)
     assert "--resolution-schedule" in shard_refusal(task_config("s", "o", resolution_schedule="dash"), 2)
@@ -278,11 +298,30 @@ def test_the_configurations_mode_picks_the_trainer():
         Mine(task_config("s", "o", dist_mode="shards"))
 
 
-def test_one_process_is_refused_before_the_scene_loads(tmp_path):
+def test_one_process_is_refused_before_the_scene_loads(tmp_path, monkeypatch):
+    monkeypatch.delenv("NCCL_GRAPH_REGISTER", raising=False)
     trainer = Trainer(task_config(tmp_path / "no_scene", tmp_path / "out", dist_mode="shards"), dict(SCHEDULE))
     assert isinstance(trainer, ShardedTrainer)
     with pytest.raises(OptionError, match="two or more"):
         trainer.run()
+    # set before the process group's communicator starts: NCCL's registration of captured buffers off
+    assert os.environ["NCCL_GRAPH_REGISTER"] == "0"
+
+
+def test_nccl_registering_captured_buffers_refuses_the_replayed_steps(monkeypatch, capsys):
+    """A launch that sets NCCL_GRAPH_REGISTER on: --cuda-graph is refused naming it, the default
+    trains without graphs and says why (on a GPU; the CPU replays nothing anyway)."""
+    monkeypatch.setenv("NCCL_GRAPH_REGISTER", "1")
+    trainer = Trainer.__new__(ShardedTrainer)
+    trainer.device = torch.device("cuda", 0)
+    trainer.ranks = type("Ranks", (), {"is_main": True})()
+    trainer.config = task_config("s", "o", dist_mode="shards", cuda_graph=True)
+    with pytest.raises(OptionError, match="NCCL_GRAPH_REGISTER=1"):
+        trainer._graph_steps()
+    trainer.config = task_config("s", "o", dist_mode="shards")
+    assert trainer._graph_steps() is None
+    assert "NCCL_GRAPH_REGISTER=1" in trainer.graph_off
+    assert "steps run without CUDA graphs" in capsys.readouterr().out
 
 
 def test_even_rows():

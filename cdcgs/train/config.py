@@ -218,7 +218,7 @@ class TrainConfig:
     )
     dist_mode: str = option(
         "data",
-        "how the processes of a torchrun launch share the scene: data (data parallelism: every process holds every Gaussian and the step's gradients are all-reduced) or shards (each process holds a slice of the Gaussians, with its gradients and Adam moments, and renders its views of the whole scene through an exchange of the projected slices; 3dgs, absgs and CDC-GS's full schedule without caps of the count, adam or torch-adam, no CUDA graphs yet: docs/distributed.md)",
+        "how the processes of a torchrun launch share the scene: data (data parallelism: every process holds every Gaussian and the step's gradients are all-reduced) or shards (each process holds a slice of the Gaussians, with its gradients and Adam moments, and renders its views of the whole scene through an exchange of the projected slices; 3dgs, absgs and CDC-GS's full schedule without caps of the count, adam or torch-adam; its steps replayed as CUDA graphs as data parallelism's: docs/distributed.md)",
         choices=DIST_MODES,
     )
     dist_backend: str = option(

@@ -75,8 +75,6 @@ def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
     nothing. ``--cuda-graph`` given explicitly raises the reason; left at none the training runs
     without graphs and says why (:meth:`cdcgs.train.trainer.Trainer`)."""
     config = trainer.config
-    if not getattr(trainer, "replicated", True):
-        return "replays the steps of data parallelism; a training on shards is not captured yet", "--dist-mode data"
     if default and trainer.device.type != "cuda":
         return "replays steps on CUDA", f"this training runs on {trainer.device.type}"
     if trainer.device.type == "cuda" and not wp.is_mempool_supported(warp_device(trainer.device)):
@@ -210,7 +208,7 @@ class GraphSteps:
                 if "exp_avg" not in state:
                     return None  # Adam's first step makes them
                 addresses += [p.data_ptr(), state["exp_avg"].data_ptr(), state["exp_avg_sq"].data_ptr()]
-        return (signature, trainer.model.sh_degree, scale, trainer.model.num, tuple(addresses))
+        return (signature, trainer.model.sh_degree, scale, trainer.model.num, trainer.num_gaussians, tuple(addresses))
 
     def take(self, first: int, views: list[int], backgrounds: list[torch.Tensor]) -> bool:
         """Take the step that begins at iteration ``first`` (a whole batch: ``views`` and
@@ -231,7 +229,7 @@ class GraphSteps:
             return False
         lookahead = trainer.lookahead
         agreed = ranks.distributed
-        needs = [lookahead.capacity(v, trainer.model.num, scale, agreed=agreed) for v in views]
+        needs = [lookahead.capacity(v, trainer.num_gaussians, scale, agreed=agreed) for v in views]
         if any(needed is None for needed in needs):
             return False  # a first render at this scale reads the count
         if key != self.key or max(needs) > self.capacity:
@@ -248,7 +246,7 @@ class GraphSteps:
         self.where.copy_(self._where_ring[slot], non_blocking=True)
         self._rates.copy_(self._rates_ring[slot], non_blocking=True)
         for p in positions:
-            lookahead.replayed(views[p], trainer.model.num, scale, first + p)
+            lookahead.replayed(views[p], trainer.num_gaussians, scale, first + p)
         if self.cuda:
             self.graph.replay()
         else:
@@ -265,7 +263,7 @@ class GraphSteps:
         trainer = self.trainer
         lookahead = trainer.lookahead
         agreed = trainer.ranks.distributed
-        known = [lookahead.capacity(v, trainer.model.num, scale, agreed) for v in range(len(trainer.scene.train))]
+        known = [lookahead.capacity(v, trainer.num_gaussians, scale, agreed) for v in range(len(trainer.scene.train))]
         self.release()  # the old graph's memory goes back before the new one takes its own
         capacity = max(c for c in known if c is not None)
         self.capacity = capacity
@@ -351,15 +349,9 @@ class GraphSteps:
             )
             lookahead.note(info, 0, 0, trainer.model.num, self._scale, where=pair)  # take() records the view
             photo = photos.index_select(0, pair[1:]).squeeze(0)
-            loss, image_psnr = trainer._loss(image, photo)
-            # the signature's: every step of the graph shares what the hooks read of it
-            ctx = trainer._context(first + position, info, None)
-            trainer.strategy.before_backward(ctx, trainer.strategy_state)
-            regularizer = trainer.strategy.regularizer(ctx)  # device operations on the Gaussians: captured
-            if regularizer is not None:
-                loss = loss + regularizer
-            trainer._backward(loss, info)
-            seen.append((loss, image_psnr, ctx))
+            # no view index: the signature's hooks read none (every step of the graph shares them);
+            # a regularizer's device operations on the Gaussians are captured
+            seen.append(trainer._learn(image, photo, info, first + position))
             if config.optimizer == "selective":
                 visible = info.visible if visible is None else visible | info.visible
         for _, _, ctx in seen:
@@ -371,13 +363,18 @@ class GraphSteps:
             visible = trainer._visible
         for loss, image_psnr, _ in seen:
             trainer.guard.record(loss, image_psnr, lookahead.halt)
+        self._adam(visible, lookahead.halt)
+
+    def _adam(self, visible: torch.Tensor | None, halt: torch.Tensor) -> None:
+        """One Adam launch over every parameter, through the address table (on the CPU, this
+        step's gradients' table, filled here); nothing while ``halt`` is set."""
         threads = sum(adam_quads(p.numel()) for p in self._params)
         if not self.cuda:  # one operation at a time: this step's gradients
             self._grads = [p.grad for p in self._params]
             self._fill_table()
-        launch_adam(self._table, self._rates, threads, visible, lookahead.halt)
+        launch_adam(self._table, self._rates, threads, visible, halt)
         if not self.cuda:
-            trainer.optimizer.zero_grad(set_to_none=True)
+            self.trainer.optimizer.zero_grad(set_to_none=True)
             self._grads = None
 
     def _batch_cameras(self, cameras, prepared) -> list:

@@ -36,25 +36,34 @@ statistics, gathered a tensor at a time), so a run resumes on any number of proc
 or not. Every ``--check-ranks-every`` iterations the processes compare what they must share (the
 step, the view order, the SH degree and the slices' sizes).
 
-Not yet: CDC-GS's online Γ schedule, caps and targets of the Gaussian count, MCMC, selective Adam, the resolution schedule, the steps
-replayed as CUDA graphs (``--sync-free``), the viewer, and moving Gaussians between slices as they grow apart (the
-slices' sizes are in metrics.json). Each is refused with its reason (:func:`shard_refusal`).
+On CUDA the steps are replayed as CUDA graphs (:class:`ShardGraphSteps`), as data parallelism's:
+rendered into slots sized by the counts every process knows, a halt shared by one all-reduce.
+
+Not yet: CDC-GS's online Γ schedule, caps and targets of the Gaussian count, MCMC, selective
+Adam, the resolution schedule, the viewer, and moving Gaussians between slices as they grow apart
+(the slices' sizes are in metrics.json). Each is refused with its reason (:func:`shard_refusal`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import time
 
 import torch
+import warp as wp
 
+from .._interop import launch, warp_device, warp_scope, wp_arg
 from ..errors import NonFiniteError, OptionError
 from ..io import save_checkpoint, write_ply
+from ..kernels._lookahead import select_camera_at_kernel
+from ..kernels.projection import Camera
 from ..render import prepare_camera, start_bin_view
 from . import outputs
 from .config import TrainConfig, batch_rule
 from .distributed import RankDrift, step_seed
+from .graph import GraphSteps
 from .interrupt import Interrupted
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer
@@ -83,9 +92,6 @@ def shard_refusal(config: TrainConfig, world: int, strategy=None) -> str | None:
     ``strategy``, once it is built), or None."""
     if world < 2:
         return "--dist-mode shards splits the Gaussians over the processes of a torchrun launch: launch two or more"
-    if config.sync_free or config.cuda_graph:
-        name = "--cuda-graph" if config.cuda_graph else "--sync-free"
-        return f"{name} is not built for --dist-mode shards yet: pass --no-cuda-graph and leave out --sync-free"
     if config.optimizer == "selective":
         return "--optimizer selective is not built for --dist-mode shards: use adam or torch-adam"
     if config.resolution_schedule not in (None, "none"):
@@ -120,6 +126,81 @@ def shard_refusal(config: TrainConfig, world: int, strategy=None) -> str | None:
     return None
 
 
+class ShardGraphSteps(GraphSteps):
+    """The replayed steps of a training on shards: as data parallelism's
+    (:class:`cdcgs.train.graph.GraphSteps`: the host writes each step's iterations and views into
+    ``where`` and Adam's rates, then replays), where each round renders through
+    :func:`cdcgs.train.shards.rasterize_shard` with slots. A round's cameras (every process's
+    view) are picked on the device from the step's views in ``where``, the exchanges (NCCL's
+    point-to-point transfers, forward and in the backward pass) are captured with the kernels, and
+    one all-reduce of the halt replaces data parallelism's all-reduce of the gradients. Every
+    process captures and replays together: what decides it (the schedule, the counts agreed at the
+    last read, the slices' sizes) is the same on every one."""
+
+    def __init__(self, trainer):
+        super().__init__(trainer)
+        # one camera slot per process: a round renders every process's view of it
+        self._round_slots = [
+            wp.empty(1, dtype=Camera, device=warp_device(self.device)) for _ in range(trainer.ranks.world)
+        ]
+
+    def key_of(self, iteration: int, scale: int):
+        key = super().key_of(iteration, scale)
+        return None if key is None else (*key, tuple(self.trainer.rows))  # the exchanges' sizes
+
+    def _body(self) -> None:
+        """The step's device work: in round k process r renders position k * W + r of the batch
+        (its iteration and view in ``where``), every process's camera of the round picked from the
+        step's views; then the halt shared, the statistics, the gradients averaged over the batch,
+        the guard's records and Adam on this slice."""
+        trainer = self.trainer
+        _, _, prepared, photos = self._tables_at(self._scale)
+        cameras = self._tables_at(self._scale)[0]
+        lookahead = trainer.lookahead
+        rank, world = trainer.ranks.rank, trainer.ranks.world
+        round_cameras = [dataclasses.replace(prepared, on_device=slot) for slot in self._round_slots]
+        first = trainer.step + 1
+        seen = []
+        for index in range(self.batch // world):
+            with warp_scope(self.device):
+                for r, slot in enumerate(self._round_slots):
+                    entry = self._views_entry + index * world + r
+                    launch(
+                        select_camera_at_kernel,
+                        1,
+                        inputs=[cameras, wp_arg(self.where, wp.int32), entry],
+                        outputs=[slot],
+                    )
+            image, _, info = rasterize_shard(
+                **trainer.model.render_args(),
+                cameras=round_cameras,
+                rows=trainer.rows,
+                background=self._background,
+                antialiased=trainer.config.antialiased,
+                capacity=self.capacity,
+            )
+            pair = self.where[2 * index : 2 * index + 2]  # (iteration, view) of this process's render
+            lookahead.note(info, 0, 0, trainer.num_gaussians, self._scale, where=pair)
+            photo = photos.index_select(0, pair[1:]).squeeze(0)
+            seen.append(trainer._learn(image, photo, info, first + index * world + rank))
+        halt = trainer._share_halt()
+        for _, _, ctx in seen:
+            trainer.strategy.observe(ctx, trainer.strategy_state)
+        if self.batch != 1:
+            for p in self._params:  # the sum over the batch's views, as its mean
+                p.grad.div_(self.batch)
+        for loss, image_psnr, _ in seen:
+            trainer.guard.record(loss, image_psnr, halt)
+        self._adam(None, halt)
+
+
+# NCCL registers the buffers of a captured graph's transfers unless told not to: with the sharded
+# render's point-to-point transfers that made the capture fail on H100s ("operation would make the
+# legacy stream depend on a capturing blocking stream"), its peer left waiting inside the transfer.
+# A training on shards turns it off unless the launch sets it (ShardedTrainer.run).
+GRAPH_REGISTER = "NCCL_GRAPH_REGISTER"
+
+
 class _Scene:
     """What a strategy's ``initialize_state`` reads of a model, for statistics over the whole scene."""
 
@@ -133,8 +214,30 @@ class ShardedTrainer(Trainer):
 
     dist_mode = "shards"
     replicated = False
+    graph_steps = ShardGraphSteps
 
     # ----------------------------------------------------------------------------- set-up
+
+    def run(self) -> dict:
+        """As :meth:`Trainer.run`, with NCCL's registration of captured buffers off (unless the
+        environment sets it): read when the process group's communicator starts."""
+        os.environ.setdefault(GRAPH_REGISTER, "0")
+        return super().run()
+
+    def _graph_steps(self):
+        registers = os.environ.get(GRAPH_REGISTER, "0")
+        if self.device.type == "cuda" and registers != "0" and self.config.cuda_graph is not False:
+            why = (
+                f"--cuda-graph captures the sharded render's NCCL transfers, which fails where NCCL registers a "
+                f"captured graph's buffers ({GRAPH_REGISTER}={registers}): unset it or set it to 0"
+            )
+            if self.config.cuda_graph:
+                raise OptionError(why)
+            self.graph_off = why
+            if self.ranks.is_main:
+                print(f"steps run without CUDA graphs: {why}")
+            return None
+        return super()._graph_steps()
 
     def _setup(self):
         config = self.config
@@ -163,6 +266,9 @@ class ShardedTrainer(Trainer):
         if refusal is not None:
             raise OptionError(refusal)
         self.statistics = None  # data parallelism's per-step exchange of the statistics
+        # Γ is measured over the gathered scene (_whole_context), view by view: not from graphs of
+        # this process's slice
+        self.gamma_groups = None
         if self.rows is None:  # a new run: the initial Gaussians split evenly
             whole = self.model
             self.rows = even_rows(whole.num, self.ranks.world)
@@ -214,10 +320,6 @@ class ShardedTrainer(Trainer):
             },
         )
 
-    def _graph_steps(self):
-        self.graph_off = "--dist-mode shards: its steps are not captured yet"
-        return None
-
     def _span(self) -> tuple[int, int]:
         """[start, end) of this process's slice in the whole scene."""
         start = sum(self.rows[: self.ranks.rank])
@@ -240,15 +342,22 @@ class ShardedTrainer(Trainer):
         # exchanges wait for the device and the other processes around them.
         timed = (first // config.batch_size) % TIME_COMMUNICATION_EVERY == 10
         timer = [0.0, 0.0] if timed else None  # [wait, transfer] seconds of the step's exchanges
+        lookahead = self.lookahead
+        if lookahead is not None:
+            self._snapshots[first] = self._host_state()
         if timed:
             self._synchronize()
             step_start = time.perf_counter()
         views, backgrounds = self._start_step(first, last)
+        if self._replayed(first, last, views, backgrounds, timed):
+            return {}
+        whole = self.num_gaussians
         seen = []
         for round_start in range(0, count, world):
             positions = [min(round_start + r, count - 1) for r in range(world)]
             position = positions[rank]
             cameras = [self.cameras[views[p]] for p in positions]
+            capacity = self._round_capacity([views[p] for p in positions])
             try:
                 image, _, info = rasterize_shard(
                     **self.model.render_args(),
@@ -256,24 +365,23 @@ class ShardedTrainer(Trainer):
                     rows=self.rows,
                     background=backgrounds[position],
                     antialiased=config.antialiased,
+                    capacity=capacity,
                     exchange_timer=timer,
                 )
-            except NonFiniteError:  # raised on every process at once
+            except NonFiniteError:  # raised on every process at once (a render that reads its count)
+                self._settle_in_step()  # unless an earlier iteration halted: then it is taken again
                 self._nonfinite_at = first + position
                 raise self._nonfinite_error() from None
+            if lookahead is not None and capacity is None:
+                lookahead.counted(views[position], info.num_intersections, whole, 1, first + position)
+            elif lookahead is not None:  # an overflow or NaN halts every process (below)
+                lookahead.note(info, first + position, views[position], whole)
             if round_start + rank >= count:  # past the batch: its part of the exchanges, with zeros
                 (image.sum() * 0.0).backward()
                 continue
             view_index = views[position]
-            photo = self.scene.train[view_index].image
-            loss, image_psnr = self._loss(image, photo)
-            ctx = self._context(first + position, info, view_index)
-            self.strategy.before_backward(ctx, self.strategy_state)
-            regularizer = self.strategy.regularizer(ctx)
-            if regularizer is not None:
-                loss = loss + regularizer
-            loss.backward()
-            seen.append((loss, image_psnr, ctx))
+            seen.append(self._learn(image, self.scene.train[view_index].image, info, first + position, view_index))
+        halt = self._share_halt()
         for _, _, ctx in seen:
             self.strategy.observe(ctx, self.strategy_state)
         # The step's stream after its draws (its backgrounds), the same on every process: the
@@ -286,11 +394,12 @@ class ShardedTrainer(Trainer):
             if p.grad is not None and count != 1:
                 p.grad.div_(count)
         for loss, image_psnr, _ in seen:
-            self.guard.record(loss, image_psnr)
+            self.guard.record(loss, image_psnr, halt)
         self.step = last
         self.step_events = []
         for iteration in range(first, last + 1):
             if self.strategy.refines_at(iteration):
+                self._settle_in_step()  # a refinement reads the Gaussians: no halted iteration before it
                 self.check_numbers(params=True)
                 self._synchronize()  # the step's kernels are not the refinement's time
                 began = time.perf_counter()
@@ -299,7 +408,7 @@ class ShardedTrainer(Trainer):
                     self._synchronize()
                     log["refine_seconds"] = time.perf_counter() - began
                     self.step_events.append((iteration, log))
-        self.optimizer.step()
+        self.optimizer.step(**({} if halt is None else {"halt": halt}))
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.after_step(self._context(last), self.strategy_state)
         if timed:
@@ -314,6 +423,48 @@ class ShardedTrainer(Trainer):
         for _, log in self.step_events:
             merged.update(log)
         return merged
+
+    def _round_capacity(self, views: list[int]) -> int | None:
+        """The slots of a round whose processes render ``views`` (with ``--sync-free`` and the
+        replayed steps): the most any of them needs by the counts every process knows alike, or
+        None where one is unknown (every process then reads its view's count: all pass a capacity
+        or none)."""
+        if self.lookahead is None:
+            return None
+        needs = [self.lookahead.capacity(view, self.num_gaussians, agreed=True) for view in views]
+        return None if any(need is None for need in needs) else max(needs)
+
+    def _share_halt(self) -> torch.Tensor | None:
+        """After a step's renders: any process's halt (a render that overflowed its slots or met
+        NaN) becomes every process's, before the statistics, the guard and Adam read it (one
+        all-reduce of one number; a step taken again must add nothing twice on any process)."""
+        if self.lookahead is None:
+            return None
+        return self.ranks.all_reduce_(self.lookahead.halt, "max")
+
+    def _prime_counts(self) -> None:
+        """Every training view's count of (tile, Gaussian) pairs for the whole scene before the
+        first step: each process bins its slice into every view, and the counts (which add up over
+        the Gaussians) are summed over the processes. Every process then knows them alike, so the
+        first steps can take slots."""
+        lookahead = self.lookahead
+        if lookahead is None or self.step >= self.config.iters:
+            return
+        model = self.model
+        with torch.no_grad():
+            shape = {"scales": model.scales(), "opacities": model.opacities()}
+            means, quats = model.params["means"].detach(), model.params["quats"].detach()
+            counts = torch.stack(
+                [
+                    start_bin_view(means, quats, **shape, camera=camera, antialiased=self.config.antialiased)
+                    .count_on_device.reshape(())
+                    .to(torch.int64)
+                    for camera in self.cameras
+                ]
+            )
+        values = self.ranks.all_reduce_(counts, "sum").tolist()
+        lookahead.prime(values, self.num_gaussians, 1, self.step)
+        lookahead.merge([lookahead.known()])  # the same on every process: agreed
 
     def _refine(self, iteration: int) -> dict:
         """The strategy's refinement of ``iteration`` on this process's slice, with its rows of
@@ -495,6 +646,8 @@ class ShardedTrainer(Trainer):
     def save(self, ply: bool = True) -> None:
         """The checkpoint (and the PLY) of the whole scene, written by rank 0 after every process
         has given its slice. The first signal cuts neither the gathering nor the writes."""
+        if self.lookahead is not None:
+            self._settle()  # a halted iteration: the state before it is the one to write
         self.check_numbers(params=True)
         with self.signals.deferred():
             state = self.state_dict()

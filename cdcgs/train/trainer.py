@@ -12,6 +12,7 @@ import logging
 import os
 import signal
 import time
+import traceback
 import typing
 import weakref
 
@@ -207,6 +208,7 @@ class Trainer:
 
     dist_mode = "data"  # every process holds every Gaussian (data parallelism)
     replicated = True  # False: each process holds a slice
+    graph_steps = GraphSteps  # the replayed steps' class (a slice's render differs)
     _by_mode: typing.ClassVar[dict[str, type]] = {}  # dist_mode -> the subclass that trains it
 
     def __init_subclass__(cls, **kwargs):
@@ -404,7 +406,7 @@ class Trainer:
                 if self.device.type == "cuda" and self.ranks.is_main:
                     print(f"steps run without CUDA graphs: {self.graph_off}")
                 return None
-        return GraphSteps(self)
+        return self.graph_steps(self)
 
     def _agree_on_graphs(self) -> None:
         """On several processes: replay steps on all of them or on none. A replayed step holds the
@@ -729,13 +731,7 @@ class Trainer:
             self._synchronize()
             step_start = time.perf_counter()
         views, backgrounds = self._start_step(first, last)
-        # A replayed step renders a whole batch (the last, shorter one runs as before); a timed
-        # step (several processes) runs as before, its parts timed apart.
-        replayable = self.graphs is not None and count == config.batch_size and not timed
-        if replayable and self.graphs.take(first, views, backgrounds):
-            self.step = last
-            self.step_events = []
-            self.strategy.after_step(self._context(last), self.strategy_state)
+        if self._replayed(first, last, views, backgrounds, timed):
             return {}
         if self.statistics is not None:
             self.statistics.begin(self.strategy_state, halts=self.lookahead is not None)
@@ -796,6 +792,19 @@ class Trainer:
         for _, log in self.step_events:
             merged.update(log)
         return merged
+
+    def _replayed(self, first: int, last: int, views: list[int], backgrounds: list, timed: bool) -> bool:
+        """Take the step of iterations ``first`` to ``last`` as a replayed graph where it can be
+        (a whole batch: the last, shorter one runs as before; a timed step runs as before, its
+        parts timed apart) and return True, else False."""
+        if self.graphs is None or last - first + 1 != self.config.batch_size or timed:
+            return False
+        if not self.graphs.take(first, views, backgrounds):
+            return False
+        self.step = last
+        self.step_events = []
+        self.strategy.after_step(self._context(last), self.strategy_state)
+        return True
 
     def _start_step(self, first: int, last: int) -> tuple[list[int], list[torch.Tensor]]:
         """The rates, the SH degree and the draws of the step of iterations ``first`` to ``last``:
@@ -937,13 +946,19 @@ class Trainer:
         elif lookahead is not None:
             lookahead.note(info, iteration, view_index, self.model.num, scale)
         photo = view.image if scale == 1 else self._scaled_view(view_index, scale)[1]
+        return self._learn(image, photo, info, iteration, view_index)
+
+    def _learn(self, image, photo, info, iteration: int, view_index: int | None = None) -> tuple:
+        """A render's loss against its ``photo`` back-propagated with the strategy's per-view hooks
+        (a replayed step passes no ``view_index``): (loss, PSNR, step context), as the step records
+        them after its last render."""
         loss, image_psnr = self._loss(image, photo)
         ctx = self._context(iteration, info, view_index)
         self.strategy.before_backward(ctx, self.strategy_state)
         regularizer = self.strategy.regularizer(ctx)
         if regularizer is not None:
             loss = loss + regularizer
-        self._backward(loss, info)  # each view's full gradient; _reduce averages them
+        self._backward(loss, info)  # each view's full gradient; the step averages them
         return loss, image_psnr, ctx
 
     @property
@@ -1138,6 +1153,10 @@ class Trainer:
                     result = self._run()
             finished = True
             return result
+        except Exception as err:
+            if self.ranks.distributed:  # said before the group closes, which may wait for a peer stuck in an exchange
+                log.error("rank %d failed:\n%s", self.ranks.rank, "".join(traceback.format_exception(err)).rstrip())
+            raise
         finally:
             if self.graphs is not None:
                 # A graph that captured NCCL's all-reduce must go before its process group: a
