@@ -232,11 +232,12 @@ def test_the_timed_steps_exchanges_are_measured(scene, tmp_path):
 def test_replayed_sharded_steps_are_the_eager_ones(scene, tmp_path):
     """40 iterations of two views a step on two slices: the steps replayed from graphs (on the CPU
     the same body, one operation at a time), with slots of exactly each view's last count so that
-    renders of grown Gaussians overflow them and both processes go back together, train the bits of
-    the steps that read every count."""
+    renders of grown Gaussians overflow them and both processes go back together (reading the
+    device every 10 iterations: a halt holds back the steps after it, and a rewind picks among
+    several steps' snapshots), train the bits of the steps that read every count."""
     runs = {}
     for name, options in (("eager", {}), ("replayed", {"cuda_graph": True, "tight_slots": True})):
-        common = dict(scene=scene, out=tmp_path / name, iters=40, dist_mode="shards", timeout=120.0)
+        common = dict(scene=scene, out=tmp_path / name, iters=40, dist_mode="shards", timeout=120.0, log_every=10)
         runs[name] = ok(run_ranks("train", 2, tmp_path, **common, **options))
     for eager, replayed in zip(runs["eager"], runs["replayed"]):
         assert eager["cuda_graph"]["off"].startswith("--cuda-graph replays steps on CUDA")
@@ -299,7 +300,8 @@ def test_the_configurations_mode_picks_the_trainer():
 
 
 def test_one_process_is_refused_before_the_scene_loads(tmp_path, monkeypatch):
-    monkeypatch.delenv("NCCL_GRAPH_REGISTER", raising=False)
+    monkeypatch.setenv("NCCL_GRAPH_REGISTER", "unset below")  # so that the test's end removes what run() sets
+    monkeypatch.delenv("NCCL_GRAPH_REGISTER")
     trainer = Trainer(task_config(tmp_path / "no_scene", tmp_path / "out", dist_mode="shards"), dict(SCHEDULE))
     assert isinstance(trainer, ShardedTrainer)
     with pytest.raises(OptionError, match="two or more"):

@@ -133,9 +133,11 @@ class ShardGraphSteps(GraphSteps):
     :func:`cdcgs.train.shards.rasterize_shard` with slots. A round's cameras (every process's
     view) are picked on the device from the step's views in ``where``, the exchanges (NCCL's
     point-to-point transfers, forward and in the backward pass) are captured with the kernels, and
-    one all-reduce of the halt replaces data parallelism's all-reduce of the gradients. Every
-    process captures and replays together: what decides it (the schedule, the counts agreed at the
-    last read, the slices' sizes) is the same on every one."""
+    one all-reduce of the halt replaces data parallelism's all-reduce of the gradients. Whether a
+    step is replayed or taken eagerly, it takes the same collectives in the same order (each round's
+    transfers forward and back, then the halt's all-reduce), and every process renders into slots
+    or reads its count alike (both from the counts agreed at the last read), so a process that
+    captures again (its own tensors moved) while another replays waits for nothing it lacks."""
 
     def __init__(self, trainer):
         super().__init__(trainer)
@@ -451,17 +453,14 @@ class ShardedTrainer(Trainer):
         if lookahead is None or self.step >= self.config.iters:
             return
         model = self.model
-        with torch.no_grad():
-            shape = {"scales": model.scales(), "opacities": model.opacities()}
-            means, quats = model.params["means"].detach(), model.params["quats"].detach()
-            counts = torch.stack(
-                [
-                    start_bin_view(means, quats, **shape, camera=camera, antialiased=self.config.antialiased)
-                    .count_on_device.reshape(())
-                    .to(torch.int64)
-                    for camera in self.cameras
-                ]
-            )
+        counts = torch.zeros(len(self.cameras), dtype=torch.int64, device=self.device)
+        if model.num:  # an empty slice adds nothing (and cannot be binned)
+            with torch.no_grad():
+                shape = {"scales": model.scales(), "opacities": model.opacities()}
+                means, quats = model.params["means"].detach(), model.params["quats"].detach()
+                for view, camera in enumerate(self.cameras):
+                    pending = start_bin_view(means, quats, **shape, camera=camera, antialiased=self.config.antialiased)
+                    counts[view] = pending.count_on_device[0]
         values = self.ranks.all_reduce_(counts, "sum").tolist()
         lookahead.prime(values, self.num_gaussians, 1, self.step)
         lookahead.merge([lookahead.known()])  # the same on every process: agreed
