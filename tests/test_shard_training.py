@@ -136,15 +136,22 @@ def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path, strate
     """CDC-GS on two slices: Γ measured over the gathered scene with the views split over the
     processes, Ψ over the gathered means, the draws from the step's shared stream; ``cdc-only``
     (its draws without CAAT) and ``cdc`` (with CAAT's thresholds, raised so that they leave some
-    Gaussians to draw). To its first densification (at 4) the same candidates, draws, correlations
-    and Gaussians as one process with every Gaussian. (After it the whole scene's order differs,
-    each slice's clones after its own Gaussians, so the same draws pick other Gaussians, alike in
+    Gaussians to draw); ``cdc`` with the sharded steps replayed (on the CPU the same body, one
+    operation at a time) and its Γ pass measured in groups of views from the gathered scene
+    (GammaGroups). To its first densification (at 4) the same candidates, draws, correlations and
+    Gaussians as one process with every Gaussian. (After it the whole scene's order differs, each
+    slice's clones after its own Gaussians, so the same draws pick other Gaussians, alike in
     number.)"""
     options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1}
+    replayed = {}
     if strategy == "cdc":
         options.update(tau_low=1.5e-3, tau_up=2.5e-3)
+        replayed = {"cuda_graph": True}
     common = dict(scene=scene, strategy=strategy, options=options, checkpoint_every=0, batch_size=2, iters=6)
-    r0, _ = ok(run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **common))
+    two = run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **common, **replayed)
+    r0, _ = ok(two)
+    if replayed:
+        assert r0["cuda_graph"]["gamma_groups"] > 0 and r0["cuda_graph"]["replayed_steps"] > 0, r0["cuda_graph"]
     one = ok([run_here("train", out=tmp_path / "one", **common)])[0]
     assert len(r0["events"]) == len(one["events"]) == 1
     for sharded, whole in zip(r0["events"], one["events"]):

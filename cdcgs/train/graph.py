@@ -450,7 +450,7 @@ class GammaGroups:
         when a view's count is unknown (the pass then bins view by view)."""
         trainer = self.trainer
         lookahead = trainer.lookahead
-        n = trainer.model.num
+        n = trainer.num_gaussians  # the whole scene's, whose counts the lookahead holds
         needs = [lookahead.capacity(view, n) for view in indices]
         if not indices or any(c is None for c in needs):
             return None
@@ -510,7 +510,7 @@ class GammaGroups:
         self._flags = torch.zeros(len(maps), len(self._NAMES) + 2, dtype=torch.int32, device=device)
         self._names = tuple(self._NAMES)
         self._table = torch.zeros(size, VIEW_TABLE_COLUMNS, dtype=torch.int64, device=device)
-        self._inputs = trainer._bin_inputs()
+        self._inputs = self.inputs()
         self._size, self._capacity, self._total, self._w_max = size, capacity, total, w_max
 
     _NAMES = ("means", "quats", "scales", "opacities")  # bin_view's flags of non-finite inputs, in its order
@@ -550,6 +550,9 @@ class GammaGroups:
         self._capturing = False
         self._infos = self._held = self._inputs = self._total = self._maps = self._map_addresses = None
         self._current = self._prepared = []
+        # (means, quats, {"scales", "opacities"}) of the Gaussians the next pass measures: the
+        # trainer's own, unless a training on shards sets the gathered scene's for its pass
+        self.inputs = self.trainer._bin_inputs
 
     def summary(self) -> dict:
         return {

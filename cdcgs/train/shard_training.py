@@ -268,9 +268,6 @@ class ShardedTrainer(Trainer):
         if refusal is not None:
             raise OptionError(refusal)
         self.statistics = None  # data parallelism's per-step exchange of the statistics
-        # Γ is measured over the gathered scene (_whole_context), view by view: not from graphs of
-        # this process's slice
-        self.gamma_groups = None
         if self.rows is None:  # a new run: the initial Gaussians split evenly
             whole = self.model
             self.rows = even_rows(whole.num, self.ranks.world)
@@ -527,6 +524,10 @@ class ShardedTrainer(Trainer):
         def bins(view_index: int, counted: bool = False):
             return start_bin_view(means, quats, **shape, camera=self.cameras[view_index], antialiased=antialiased)
 
+        groups = self.gamma_groups  # a Γ pass's groups of views replayed, over the gathered scene
+        if groups is not None:
+            groups.inputs = lambda: (means, quats, shape)
+
         ctx = StepContext(
             step=iteration,
             total_steps=self.config.iters,
@@ -537,6 +538,7 @@ class ShardedTrainer(Trainer):
             extent=self.scene.extent,
             generator=self._scene_generator,
             bins=bins,
+            gamma_groups=groups,
             views=self.scene.train,
             complexity_maps=self.complexity_maps,
             ranks=self.ranks,
