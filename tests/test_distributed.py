@@ -634,3 +634,29 @@ def test_the_ranks_checksum_sees_any_flipped_bit_and_any_swap():
     swapped = {k: v.clone() for k, v in params.items()}
     swapped["means"].reshape(-1)[:2] = params["means"].reshape(-1)[:2].flip(0)
     assert _checksum(swapped) != base
+
+
+def test_a_failed_process_says_why_before_leaving_the_group(tmp_path, monkeypatch, caplog):
+    """On several processes a failure is logged before the process group closes (which can wait
+    on a peer stuck inside an exchange, so that nothing else would tell): a defect with its
+    traceback, a known failure in one line, bad input not at all (the command line says it)."""
+    from cdcgs.train.distributed import RankFailed
+
+    class TwoRanks:  # a caller's own group of two, as far as run() looks at it
+        distributed, world, rank, is_main, backend = True, 2, 0, True, "gloo"
+
+    trainer = Trainer(task_config("s", tmp_path / "out"), ranks=TwoRanks())
+    said = {}
+    for error in (KeyError("boom"), RankFailed("rank 1 died"), OptionError("--iters must be positive")):
+
+        def fail(error=error):
+            raise error
+
+        monkeypatch.setattr(trainer, "_run_main", fail)
+        caplog.clear()
+        with caplog.at_level("ERROR", logger="cdcgs"), pytest.raises(type(error)):
+            trainer.run()
+        said[type(error).__name__] = caplog.text
+    assert "rank 0 failed: Traceback" in said["KeyError"] and "boom" in said["KeyError"]
+    assert "rank 0 failed: RankFailed: rank 1 died" in said["RankFailed"] and "Traceback" not in said["RankFailed"]
+    assert said["OptionError"] == ""

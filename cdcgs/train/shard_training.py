@@ -156,8 +156,7 @@ class ShardGraphSteps(GraphSteps):
         step's views; then the halt shared, the statistics, the gradients averaged over the batch,
         the guard's records and Adam on this slice."""
         trainer = self.trainer
-        _, _, prepared, photos = self._tables_at(self._scale)
-        cameras = self._tables_at(self._scale)[0]
+        cameras, _, prepared, photos = self._tables_at(self._scale)
         lookahead = trainer.lookahead
         rank, world = trainer.ranks.rank, trainer.ranks.world
         round_cameras = [dataclasses.replace(prepared, on_device=slot) for slot in self._round_slots]

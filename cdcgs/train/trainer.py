@@ -27,6 +27,8 @@ from ..render import bin_view, prepare_camera, rasterize, sh_adjoint, start_bin_
 from . import outputs
 from .config import TrainConfig, background_color, batch_rule, config_to_dict, resolve_defaults
 from .distributed import (
+    RankDrift,
+    RankFailed,
     Ranks,
     StatisticsSync,
     _environment,
@@ -1154,8 +1156,12 @@ class Trainer:
             finished = True
             return result
         except Exception as err:
-            if self.ranks.distributed:  # said before the group closes, which may wait for a peer stuck in an exchange
-                log.error("rank %d failed:\n%s", self.ranks.rank, "".join(traceback.format_exception(err)).rstrip())
+            # Said before the group closes, which may wait for a peer stuck in an exchange (then
+            # nothing else would tell). Bad input is reported by the command line, as one line.
+            if self.ranks.distributed and not isinstance(err, (InputError, OptionError)):
+                known = isinstance(err, (RankFailed, RankDrift, TrainingDiverged))
+                said = f"{type(err).__name__}: {err}" if known else "".join(traceback.format_exception(err)).rstrip()
+                log.error("rank %d failed: %s", self.ranks.rank, said)
             raise
         finally:
             if self.graphs is not None:
