@@ -140,8 +140,9 @@ def train_argv(scene, out, iters: int, *extra: str, device: str = DEFAULT_DEVICE
     ]
 
 
-# The short trainings that compare a way of stepping with the counted one (test_lookahead, test_graph).
-ITERS = 120
+# The short trainings that compare a way of stepping with the counted one (test_lookahead,
+# test_graph): three densifications of SHORT's (at 20, 40 and 60).
+ITERS = 60
 
 
 def train_briefly(scene, out, strategy="3dgs", options=SHORT, **overrides):
@@ -153,6 +154,19 @@ def train_briefly(scene, out, strategy="3dgs", options=SHORT, **overrides):
     values.update(overrides)
     trainer = Trainer(tiny_config(scene, out, **values), options)
     return trainer, trainer.run()
+
+
+_TRAINED: dict = {}
+
+
+def train_once(scene, out, strategy="3dgs", options=SHORT, **overrides):
+    """:func:`train_briefly`, trained once per session for each set of arguments and shared by
+    the tests that compare with it (the reference runs): callers only read it, and call it where no
+    patch of theirs is in force. ``out`` is where the first call trains it."""
+    key = (str(scene), strategy, repr(options), repr(sorted(overrides.items())))
+    if key not in _TRAINED:
+        _TRAINED[key] = train_briefly(scene, out, strategy, options, **overrides)
+    return _TRAINED[key]
 
 
 def assert_same_model(a, b) -> None:

@@ -13,6 +13,7 @@ from helpers import (
     interrupt_at,
     tiny_config,
     train_briefly,
+    train_once,
     warp_without_ordinals,
 )
 
@@ -67,8 +68,8 @@ def test_a_graph_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path
     gradients averaged, one Adam step), train the steps that run one operation at a time. MCMC's
     regulariser is in the graph and its noise after it, drawn as without graphs."""
     options = MCMC_SHORT if strategy.startswith("mcmc") else SHORT
-    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", strategy, options, background="white", **overrides)
-    graphed, result = train_briefly(
+    counted, _ = train_once(tiny_scene, tmp_path / "counted", strategy, options, background="white", **overrides)
+    graphed, result = train_once(
         tiny_scene, tmp_path / "graph", strategy, options, background="white", cuda_graph=True, **overrides
     )
     assert_same_model(counted, graphed)
@@ -90,7 +91,7 @@ def test_a_graph_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path
 def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monkeypatch):
     """Slots of exactly the largest last count: views overflow inside replayed steps, halt, and the
     steps are taken again after the read; the run ends as the counted one."""
-    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", "3dgs", SHORT, background="white")
+    counted, _ = train_once(tiny_scene, tmp_path / "counted", "3dgs", SHORT, background="white")
     monkeypatch.setattr(lookahead, "MARGIN", 1.0)
     monkeypatch.setattr(lookahead, "FLOOR", 0)
     graphed, result = train_briefly(tiny_scene, tmp_path / "graph", "3dgs", SHORT, background="white", cuda_graph=True)
@@ -108,8 +109,8 @@ def test_the_gamma_pass_bins_into_slots_and_counts_again_after_an_overflow(tiny_
     so that the last is filled up). With slots of exactly the last count some views overflow and
     they are binned again, their counts read. Either way the run is the one that reads every
     count."""
+    counted, _ = train_once(tiny_scene, tmp_path / "counted", "cdc", SHORT, background="white")
     monkeypatch.setattr(cdcgs.complexity, "GAMMA_VIEWS_PER_LAUNCH", 2)
-    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", "cdc", SHORT, background="white")
     if tight:
         monkeypatch.setattr(lookahead, "MARGIN", 1.0)
         monkeypatch.setattr(lookahead, "FLOOR", 0)
@@ -131,7 +132,7 @@ def test_an_interrupted_graph_training_resumes_exactly(tiny_scene, tmp_path, mon
     straight = Trainer(tiny_config(tiny_scene, tmp_path / "a", **values), SHORT)
     straight.run()
     with monkeypatch.context() as patch:
-        interrupt_at(patch, 70)
+        interrupt_at(patch, 50)
         with pytest.raises(KeyboardInterrupt):
             Trainer(tiny_config(tiny_scene, tmp_path / "b", **values), SHORT).run()
     resumed = Trainer(tiny_config(tiny_scene, tmp_path / "b", resume=True, **values), SHORT)
@@ -343,7 +344,7 @@ def test_cuda_graph_refuses_a_viewer_callback(tiny_scene, tmp_path):
 def test_the_default_on_a_gpu_is_the_graph_training(tiny_scene, tmp_path, monkeypatch):
     """With the device's reason taken away (as on CUDA), the default training replays its steps:
     the same run as ``--cuda-graph`` (on the CPU, one operation at a time), bit for bit."""
-    given, _ = train_briefly(tiny_scene, tmp_path / "given", "3dgs", SHORT, background="white", cuda_graph=True)
+    given, _ = train_once(tiny_scene, tmp_path / "given", "3dgs", SHORT, background="white", cuda_graph=True)
     _as_on_cuda(monkeypatch)
     default, result = train_briefly(tiny_scene, tmp_path / "default", "3dgs", SHORT, background="white")
     assert result["cuda_graph"]["replayed_steps"] > 0 and default.lookahead is not None

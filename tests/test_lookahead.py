@@ -6,7 +6,7 @@ import json
 
 import pytest
 import torch
-from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, train_briefly
+from helpers import DEFAULT_DEVICE, ITERS, SHORT, assert_same_model, train_briefly, train_once
 
 import cdcgs.render
 import cdcgs.train.lookahead as lookahead
@@ -33,7 +33,7 @@ MCMC_SHORT = {"refine_from": 20, "refine_until": 90, "refine_every": 20, "target
     ids=["3dgs", "3dgs-batch-2", "mcmc"],
 )
 def test_a_sync_free_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path, strategy, options, overrides):
-    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", strategy, options, **overrides)
+    counted, _ = train_once(tiny_scene, tmp_path / "counted", strategy, options, **overrides)
     free, result = train_briefly(tiny_scene, tmp_path / "free", strategy, options, sync_free=True, **overrides)
     assert_same_model(counted, free)
     summary = result["sync_free"]
@@ -52,7 +52,7 @@ def test_overflows_halt_every_update_and_are_taken_again(tiny_scene, tmp_path, m
     goes back to the iteration that overflowed: the run ends as the counted one (on CUDA, whose
     atomic sums differ from run to run, as close as two counted runs)."""
     for strategy, options in (("3dgs", SHORT), ("mcmc", MCMC_SHORT)):
-        counted, first = train_briefly(tiny_scene, tmp_path / f"{strategy}-counted", strategy, options)
+        counted, first = train_once(tiny_scene, tmp_path / f"{strategy}-counted", strategy, options)
         monkeypatch.setattr(lookahead, "MARGIN", 1.0)
         monkeypatch.setattr(lookahead, "FLOOR", 0)
         free, result = train_briefly(tiny_scene, tmp_path / f"{strategy}-free", strategy, options, sync_free=True)
@@ -73,7 +73,7 @@ def test_a_halt_on_a_later_view_of_a_batch_also_stops_the_earlier_views_records(
     exactly its last count's slots: every halt lands on a step's second view, after the first
     view's render. The step's guard records and densification statistics wait for its last render,
     so the halt stops them too, and the step taken again counts each view once."""
-    counted, _ = train_briefly(tiny_scene, tmp_path / "counted", batch_size=2)
+    counted, _ = train_once(tiny_scene, tmp_path / "counted", batch_size=2)
     monkeypatch.setattr(lookahead, "MARGIN", 1.0)
     monkeypatch.setattr(lookahead, "FLOOR", 0)
     real, calls = lookahead.Lookahead.capacity, {"n": 0}
