@@ -3,6 +3,9 @@ and Adam's rates read from the device. On the CPU the same step runs one operati
 must give the training without it bit for bit; on CUDA the replayed training must stay as close to
 the counted one as two counted runs are."""
 
+import gc
+import weakref
+
 import pytest
 import torch
 from helpers import (
@@ -21,6 +24,7 @@ import cdcgs.complexity
 import cdcgs.train.lookahead as lookahead
 from cdcgs.errors import OptionError
 from cdcgs.render import prepare_camera, rasterize
+from cdcgs.train.graph import GraphSteps
 from cdcgs.train.trainer import Trainer
 
 CPU_ONLY = pytest.mark.skipif(
@@ -231,6 +235,44 @@ def test_a_replayed_training_on_cuda_is_as_close_to_the_counted_one_as_two_count
     assert abs(count["graph"] - count["counted"]) <= max(
         3 * abs(count["counted"] - count["again"]), 0.02 * count["counted"]
     ), count
+
+
+def test_a_capture_first_frees_an_earlier_steps_graph_that_a_reference_cycle_holds(
+    tiny_scene, tmp_path, monkeypatch, device
+):
+    """Warp builds a kernel module on its first launch, and the exceptions its code generation
+    catches keep the calling step's frames, with its tensors and so its autograd graph, in a
+    reference cycle until Python's cycle collector runs. On an H200 with an empty kernel cache the
+    first capture then failed (the graph's gradient accumulators belong to the default stream).
+    Here the first (eager) step's image is held in such a cycle, with the automatic collector off:
+    the capture that follows must have freed it, and say so."""
+    held, alive_after_capture = [], []
+    learn, capture = Trainer._learn, GraphSteps._capture
+
+    def learn_and_hold(self, image, *args):
+        if not held:  # the first step's image, in a cycle as a caught exception's frames hold it
+            cycle = [image]
+            cycle.append(cycle)
+            held.append(weakref.ref(image))
+        return learn(self, image, *args)
+
+    def capture_and_look(self, *args):
+        capture(self, *args)
+        alive_after_capture.append(held[0]() is not None)
+
+    monkeypatch.setattr(Trainer, "_learn", learn_and_hold)
+    monkeypatch.setattr(GraphSteps, "_capture", capture_and_look)
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        _, result = train_briefly(
+            tiny_scene, tmp_path / "run", "3dgs", SHORT, iters=6, background="white", cuda_graph=True, device=device
+        )
+    finally:
+        if collecting:
+            gc.enable()
+    assert alive_after_capture == [False], alive_after_capture
+    assert result["cuda_graph"]["freed_earlier_graphs"] == 1, result["cuda_graph"]
 
 
 def test_the_memory_pool_check_asks_warp_for_an_indexed_device(monkeypatch):

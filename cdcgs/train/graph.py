@@ -41,11 +41,12 @@ bit for bit (``tests/test_graph.py``).
 from __future__ import annotations
 
 import dataclasses
+import gc
 import time
 
 import torch
 import warp as wp
-from torch.autograd.graph import increment_version
+from torch.autograd.graph import get_gradient_edge, increment_version
 
 from .. import complexity
 from .._interop import launch, warp_device, warp_scope, wp_arg
@@ -59,13 +60,43 @@ from .distributed import my_positions
 from .lookahead import READ_EVERY, halt_refusal
 from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
-__all__ = ["GammaGroups", "GraphSteps", "capture", "graph_refusal"]
+__all__ = ["GammaGroups", "GraphSteps", "capture", "free_earlier_graphs", "graph_refusal", "mark_step_graph"]
 
 # Host slots of the per-step copies: the host writes slot (iteration % RING) and queues a copy
 # from it; a read of the device (at least every READ_EVERY iterations) waits for every copy, so
 # a slot is never rewritten before its copy has run.
 RING = 256
 assert READ_EVERY < RING
+
+
+# The tag that an eager step's backward pass puts on each parameter's gradient accumulator (the
+# autograd node its graph ends in): the tag lives as long as that node does.
+_EARLIER_STEP = "cdcgs.earlier_step"
+
+
+def mark_step_graph(params) -> None:
+    """Tag the gradient accumulators of ``params`` (leaf tensors) that the step's autograd graph
+    holds, so that :func:`free_earlier_graphs` knows whether that graph outlives the step."""
+    for p in params:
+        get_gradient_edge(p).node.metadata[_EARLIER_STEP] = True
+
+
+def free_earlier_graphs(params) -> bool:
+    """Before a capture: free the autograd graph of an earlier step that something still holds, and
+    say whether there was one.
+
+    An accumulator of a parameter that outlives its step keeps the CUDA stream it was made on
+    (torch's default stream, where the eager steps run), and a captured backward pass that adds
+    into it then waits on that stream: the capture fails ("operation would make the legacy stream
+    depend on a capturing blocking stream"). What held it on a fresh machine was a reference cycle:
+    Warp builds a kernel module on its first launch, and the exceptions its code generation catches
+    keep the frames of the calling step, with the step's tensors, until Python's cycle collector
+    runs; a full collection (tens of milliseconds) is taken only when a tagged accumulator is found
+    alive."""
+    if not any(_EARLIER_STEP in get_gradient_edge(p).node.metadata for p in params):
+        return False
+    gc.collect()
+    return True
 
 
 def graph_refusal(trainer, *, default: bool = False) -> tuple[str, str] | None:
@@ -173,6 +204,7 @@ class GraphSteps:
         self.key = None
         self.capacity = 0
         self.captures = 0
+        self.freed_graphs = 0  # captures that first freed an earlier step's graph (free_earlier_graphs)
         self.capture_seconds = 0.0  # the host's time in the captures (recording and instantiating)
         # the host's wait, before each capture, for the work queued before it (torch's capture
         # synchronises the device first): on several processes it holds their collectives, so the
@@ -277,6 +309,7 @@ class GraphSteps:
         self._scale = scale
         self.captures += 1
         trainer.optimizer.zero_grad(set_to_none=True)
+        self.freed_graphs += free_earlier_graphs(self._params)
         cameras = self._tables_at(scale)[0]  # Warp allocates them: not inside the capture
         if trainer._exchanges_colours:  # the step's views' cameras, for their SH adjoints
             self._batch_slots = [wp.empty(1, dtype=Camera, device=cameras.device) for _ in range(self.batch)]
@@ -414,6 +447,7 @@ class GraphSteps:
             "replayed_steps": self.replays,
             "capture_seconds": self.capture_seconds,
             "capture_wait_seconds": self.capture_wait_seconds,
+            "freed_earlier_graphs": self.freed_graphs,
         }
 
 

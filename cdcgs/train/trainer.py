@@ -39,7 +39,7 @@ from .distributed import (
     step_seed,
 )
 from .evaluate import evaluate, lpips_metric
-from .graph import GammaGroups, GraphSteps, graph_refusal
+from .graph import GammaGroups, GraphSteps, graph_refusal, mark_step_graph
 from .guard import NumericGuard, TrainingDiverged
 from .interrupt import Interrupted, StopSignals
 from .lookahead import READ_EVERY, Halted, Lookahead, halt_refusal
@@ -973,14 +973,22 @@ class Trainer:
         Gaussian culled), for the other processes (:meth:`_rebuild_sh_gradients`)."""
         if not self._exchanges_colours:
             loss.backward()
+            self._mark_step_graph()
             return
         info.colors.retain_grad()
         loss.backward()
+        self._mark_step_graph()
         grad = info.colors.grad
         if grad is None:
             grad = torch.zeros_like(info.colors)
         passes = (info.colors > 0) & (info.radii[:, :1] > 0)
         self._colour_grads.append(torch.where(passes, grad, torch.zeros((), device=grad.device)))
+
+    def _mark_step_graph(self) -> None:
+        """Where steps are captured, tag the graph this backward pass went through, so that the next
+        capture frees it first if a reference cycle still holds it (:func:`free_earlier_graphs`)."""
+        if self.graphs is not None:
+            mark_step_graph(self.model.params.values())
 
     def _rebuild_sh_gradients(self, count: int, cameras) -> int:
         """``--dist-exchange colours``: gather every process's colour gradients of the step's
