@@ -377,6 +377,8 @@ def sharded_render(
     backend="gloo",
     default_float64=False,
     capacity=None,
+    record_order=False,
+    anomaly=False,
 ):
     """rasterize_shard on this rank's slice of a random scene (``rows``: the slices' sizes), the
     view of camera ``rank`` of an orbit, and the backward pass of a fixed weighting of its image:
@@ -385,11 +387,32 @@ def sharded_render(
     "shape" or "nan"): that rank passes a means tensor of the wrong shape, or a NaN in it;
     ``backend`` "nccl": on GPU ``rank`` (the results come back on the CPU); ``default_float64``:
     torch's default dtype float64 in this process (the scene float32 still); ``capacity``: slots
-    for the view's pairs, nothing read back, ``info.check()`` after the backward pass."""
+    for the view's pairs, nothing read back, ``info.check()`` after the backward pass;
+    ``record_order``: "order" holds the backward pass's projection adjoints (the view's index) and
+    its waits for the other processes' gradients ("wait"), in the order they ran; ``anomaly``: the
+    backward pass under torch's anomaly detection."""
     import torch
     import torch.distributed as dist
 
+    from cdcgs.render import _Project
+    from cdcgs.train import shards
     from cdcgs.train.shards import rasterize_shard
+
+    order = []
+    if record_order:  # this process only: it is a process of its own
+        adjoint, wait = _Project.backward, shards._Pending.wait
+
+        def noted_adjoint(ctx, *grads):
+            order.append(next(i for i, camera in enumerate(cameras) if camera is ctx.camera))
+            return adjoint(ctx, *grads)
+
+        def noted_wait(self):
+            if self._works:
+                order.append("wait")
+            return wait(self)
+
+        _Project.backward = staticmethod(noted_adjoint)
+        shards._Pending.wait = noted_wait
 
     device = torch.device("cpu")
     if backend == "nccl":
@@ -424,7 +447,8 @@ def sharded_render(
         )
         absgrad = info.retain_absgrad()  # AbsGS's sums over the whole scene's projection into this view
         weight = weights[rank].to(device)
-        ((image * weight).sum() + (alpha * weight[..., 0]).sum()).backward()
+        with torch.autograd.set_detect_anomaly(anomaly):
+            ((image * weight).sum() + (alpha * weight[..., 0]).sum()).backward()
         intersections = info.check()  # with capacity: what the render did not read, raised here
         grads = [t.grad for t in mine[:4]]
         grads.append(torch.cat([sh["sh"].grad, sh["sh_rest"].grad], 1) if split else mine[4].grad)
@@ -435,6 +459,7 @@ def sharded_render(
             "absgrad": absgrad.cpu(),
             "received": int(info.means2d.shape[0]),
             "grads": [g.cpu() for g in grads],
+            "order": order,
         }
     finally:
         dist.destroy_process_group()

@@ -3,7 +3,7 @@ one view; the render and its gradients are those of one process rendering the wh
 
 import pytest
 import torch
-from dist_tasks import run_ranks, sharded_scene
+from dist_tasks import ok, run_ranks, sharded_scene
 
 from cdcgs.render import rasterize
 
@@ -27,6 +27,26 @@ def test_a_sharded_render_into_slots_is_the_whole_scenes_render(tmp_path):
     """With ``capacity`` (nothing read on the host, as a captured step needs) the same render,
     and ``info.check()`` gives the view's count."""
     check_sharded_render(tmp_path, (70, 50), True, False, "gloo", torch.device("cpu"), capacity=4096)
+
+
+@pytest.mark.parametrize("world, anomaly", [(2, False), (3, False), (2, True)], ids=["2", "3", "2-anomaly-mode"])
+def test_the_backward_pass_takes_its_own_views_adjoint_while_the_others_gradients_travel(tmp_path, world, anomaly):
+    """The backward pass posts the transfers that bring the other processes' gradients back, runs
+    the projection's adjoint of this process's own view, and only then waits for those transfers
+    (once), before the other views' adjoints read them: on a GPU its own adjoint runs during the
+    transfers. The render and gradients stay the whole scene's (the tests above). Under anomaly
+    detection, which reads every gradient for NaN as soon as it is returned, the transfers are
+    waited for at once."""
+    rows = (30, 20, 25)[:world]
+    options = dict(rows=rows, record_order=True, anomaly=anomaly)
+    outs = ok(run_ranks("sharded_render", world, tmp_path, timeout=60.0, **options))
+    for rank, out in enumerate(outs):
+        order = out["order"]
+        if anomaly:
+            assert "wait" not in order and sorted(order) == list(range(world)), order
+            continue
+        assert order[0] == rank and order[1] == "wait", order
+        assert sorted(order[2:]) == [v for v in range(world) if v != rank], order
 
 
 def test_a_sharded_render_keeps_float32_under_a_float64_default(tmp_path):

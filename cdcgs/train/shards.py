@@ -17,7 +17,9 @@ at once:
 4. in the backward pass the gradients of those 10 floats go back the reverse way, and
    each process finishes the projection's and the SH evaluation's adjoints of its own slice, for
    every view: its parameters' gradients are the step's (the sum over the views), with nothing
-   all-reduced.
+   all-reduced. The transfers are posted first and waited for only when another process's view
+   needs them, so the adjoints of the process's own view (which it projected last) run while they
+   travel.
 
 A step thus moves 12 numbers a Gaussian forward (10 floats, 2 int32) and 10 floats back, against
 data parallelism's all-reduce of 59 floats, and no process holds another's parameters, gradients
@@ -72,13 +74,15 @@ def _peer(group, rank: int) -> int:
     return rank if group is None else dist.get_global_rank(group, rank)
 
 
-def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]], group, timer=None) -> None:
+def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]], group, timer=None, pending=None):
     """Send ``outgoing[r]`` (a list of tensors) to process r and fill ``incoming[r]`` from it, for
     every r, as one group of point-to-point transfers: each tensor goes as it lies, with no packing
     (this process's own part is copied). Tensors with no elements are skipped on both sides; the
     processes agree on every size. ``timer`` ([wait, transfer] seconds, or None): the device's
     queued work is waited for, then the other processes (a one-number all-reduce), each added to
-    its entry, then the transfers, timed to their end."""
+    its entry, then the transfers, timed to their end. ``pending`` (a :class:`_Pending`, without
+    ``timer``): the transfers are posted and handed to it, not waited for; it keeps the tensors
+    until it waits."""
     rank = dist.get_rank(group)
     ops = []
     for r, (sent, received) in enumerate(zip(outgoing, incoming)):
@@ -89,31 +93,81 @@ def _swap(outgoing: list[list[torch.Tensor]], incoming: list[list[torch.Tensor]]
         peer = _peer(group, r)
         ops += [dist.P2POp(dist.isend, t, peer, group, tag) for tag, t in enumerate(sent) if t.numel()]
         ops += [dist.P2POp(dist.irecv, t, peer, group, tag) for tag, t in enumerate(received) if t.numel()]
-    if ops:
+    if not ops:
+        return
+    try:
+        if timer is not None:
+            device = outgoing[rank][0].device
+            start = device_clock(device)
+            dist.all_reduce(torch.zeros(1, device=device), group=group)
+            middle = device_clock(device)
+            timer[0] += middle - start
+        works = dist.batch_isend_irecv(ops)
+        if pending is not None and timer is None:
+            pending.hold(works, outgoing, incoming)
+            return
+        for work in works:
+            work.wait()  # on NCCL: the current stream waits, not the host
+        if timer is not None:
+            timer[1] += device_clock(device) - middle
+    except (RuntimeError, OSError) as err:  # gloo's word for a peer that died, stopped or timed out
+        raise _failed(rank, err) from err
+
+
+def _failed(rank: int, err: BaseException) -> BaseException:
+    if isinstance(err, RankFailed):
+        return err
+    return RankFailed(
+        f"rank {rank}: the sharded render's exchange failed; another process may have died, stopped or timed "
+        f"out ({err})"
+    )
+
+
+class _Pending:
+    """The backward pass's transfers, posted by :class:`_Exchange` and waited for by the first
+    :class:`_AwaitGradients` that runs: in between, the autograd engine runs this process's own
+    view's adjoints (created last, so taken first), on the device while the transfers run."""
+
+    def __init__(self, rank: int):
+        self.rank = rank
+        self._works: list = []
+        self._tensors: list = []  # what the transfers read and write, alive until they end
+
+    def hold(self, works, *tensors) -> None:
+        self.wait()  # none, unless a backward pass that posted them failed before its wait
+        self._works, self._tensors = list(works), list(tensors)
+
+    def wait(self) -> None:
+        works, self._works = self._works, []
         try:
-            if timer is not None:
-                device = outgoing[rank][0].device
-                start = device_clock(device)
-                dist.all_reduce(torch.zeros(1, device=device), group=group)
-                middle = device_clock(device)
-                timer[0] += middle - start
-            for work in dist.batch_isend_irecv(ops):
+            for work in works:
                 work.wait()  # on NCCL: the current stream waits, not the host
-            if timer is not None:
-                timer[1] += device_clock(device) - middle
-        except (RuntimeError, OSError) as err:  # gloo's word for a peer that died, stopped or timed out
-            if isinstance(err, RankFailed):
-                raise
-            raise RankFailed(
-                f"rank {rank}: the sharded render's exchange failed; another process may have died, stopped or timed "
-                f"out ({err})"
-            ) from err
+        except (RuntimeError, OSError) as err:
+            raise _failed(self.rank, err) from err
+        finally:
+            self._tensors = []
+
+
+class _AwaitGradients(torch.autograd.Function):
+    """The identity on a view's fields that another process renders; in the backward pass it waits
+    for the transfers that bring their gradients back (:class:`_Pending`) before the projection's
+    adjoint of that view reads them."""
+
+    @staticmethod
+    def forward(ctx, pending, *fields):
+        ctx.pending = pending
+        return tuple(field.view_as(field) for field in fields)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        ctx.pending.wait()
+        return (None, *grads)
 
 
 class _Exchange(torch.autograd.Function):
     """Each view's fields to the process that renders it, field by field; their gradients back.
 
-    Inputs: ``layout`` (send_rows, receive_rows, group, timer: see :func:`_swap`); this process's
+    Inputs: ``layout`` (send_rows, receive_rows, group, timer, pending: see :func:`_swap`); this process's
     flags, which every other process receives beside the fields; then the fields of view 0
     (FIELDS, in order), of view 1, .... Returns the received fields (each [sum(receive_rows),
     width], [sum(receive_rows)] where the width is 1, in process order) and the flags of every
@@ -121,7 +175,7 @@ class _Exchange(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, layout, flags, *fields):
-        send_rows, receive_rows, group, timer = layout
+        send_rows, receive_rows, group, timer, _ = layout
         world = len(send_rows)
         per_view = [fields[v * len(FIELDS) : (v + 1) * len(FIELDS)] for v in range(world)]
         device = flags.device
@@ -143,7 +197,7 @@ class _Exchange(torch.autograd.Function):
     @staticmethod
     def backward(ctx, *grads):
         """The differentiable fields' gradients travel back; the radii's and flags' are none."""
-        send_rows, receive_rows, group, timer = ctx.layout
+        send_rows, receive_rows, group, timer, pending = ctx.layout
         world = len(send_rows)
         offsets = [sum(receive_rows[:r]) for r in range(world)]
         device = ctx.device
@@ -160,7 +214,13 @@ class _Exchange(torch.autograd.Function):
             ]
             for v in range(world)
         ]
-        _swap([[g[offsets[r] : offsets[r] + receive_rows[r]] for g in grads] for r in range(world)], back, group, timer)
+        # posted, not waited for, where ``pending`` is given: the views of the other processes wait
+        # in their _AwaitGradients, after this process's own view's adjoints are queued. Anomaly
+        # mode reads every returned gradient for NaN as soon as this returns: it waits here.
+        if torch.is_anomaly_enabled() and torch.is_anomaly_check_nan_enabled():
+            pending = None
+        outgoing = [[g[offsets[r] : offsets[r] + receive_rows[r]] for g in grads] for r in range(world)]
+        _swap(outgoing, back, group, timer, pending)
         out = [None, None]
         for v in range(world):
             out += back[v] + [None]  # no gradient for the radii
@@ -283,14 +343,22 @@ def rasterize_shard(
     flags = torch.zeros(len(_NAMES) + 1, dtype=torch.int32, device=device)
     nonfinite = flags[: len(_NAMES)]
     with warp_scope(device):
-        views = []  # per view: the fields of FIELDS, of this slice
+        views = [None] * world  # per view: the fields of FIELDS, of this slice
+        # The backward pass's transfers overlap this process's own view's adjoints: the other views
+        # are projected first, each behind an _AwaitGradients, and this process's own view last, so
+        # that the autograd engine (later nodes first) queues its adjoints before any wait.
+        transfers = _Pending(rank) if exchange_timer is None and not visible_only and wrong is None else None
         if wrong is None:
-            for view in cameras:
+            for v in [*(v for v in range(world) if v != rank), rank]:
+                view = cameras[v]
                 means2d, conics, depths, composited, radii = _Project.apply(
                     means, quats, scales, opacities, view, antialiased, nonfinite
                 )
                 colors = _ShColor.apply(means, sh, sh_rest, sh_degree, view, radii, nonfinite[len(_NAMES) - 1 :])
-                views.append([means2d, conics, colors, composited, depths, radii])
+                fields = [means2d, conics, colors, composited, depths]
+                if transfers is not None and v != rank:
+                    fields = list(_AwaitGradients.apply(transfers, *fields))
+                views[v] = [*fields, radii]
         else:  # zeros of the right sizes take this process's part in the exchanges, both ways
             flags[_WRONG] = 1
             views = [[_zeros(n, width, device, name) for name, width in FIELDS] for _ in cameras]
@@ -310,7 +378,9 @@ def rasterize_shard(
             picked = [each.nonzero().squeeze(1) for each in seen]
             views = [[field.index_select(0, keep) for field in fields] for fields, keep in zip(views, picked)]
         *received, every_flags = _Exchange.apply(
-            (send_rows, receive_rows, group, exchange_timer), flags, *(field for fields in views for field in fields)
+            (send_rows, receive_rows, group, exchange_timer, transfers),
+            flags,
+            *(field for fields in views for field in fields),
         )
         if wrong is not None and capacity is None:  # the others raise at their count read
             every_flags.tolist()  # its transfers done before it raises (and perhaps leaves the group)
