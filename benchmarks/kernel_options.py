@@ -1,6 +1,8 @@
 """The renderer's kernel choices as options of a benchmark: ``--blend-backward`` and ``--blend-chunk``
 (``cdcgs.render.BLEND_BACKWARD_CUDA`` and ``BLEND_CHUNK``), and ``--w-max-pass`` (how CDC-GS's Γ
-pass finds w_max, ``cdcgs.complexity.W_MAX_PASS``), for timing one against another."""
+pass finds w_max, ``cdcgs.complexity.W_MAX_PASS``), ``--gamma-views-per-launch`` and ``--sh-adam``
+(where a replayed step takes the SH coefficients' Adam step, ``cdcgs.train.graph.FUSE_SH_ADAM``),
+for timing one against another."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import contextlib
 
 import cdcgs.complexity
 import cdcgs.render
+import cdcgs.train.graph
 from cdcgs.kernels import BLOCK_SIZE
 
 
@@ -31,6 +34,13 @@ def add_kernel_options(parser) -> None:
         default=None,
         help="how the Γ pass finds w_max under the alpha rule: each pixel walks its tile list, or each list "
         "entry scatters to its support box (cdcgs.complexity.W_MAX_PASS; default: as it is)",
+    )
+    parser.add_argument(
+        "--sh-adam",
+        choices=("adjoint", "launch"),
+        default=None,
+        help="where a replayed step of one view takes the SH coefficients' Adam step: in their adjoint, or in the "
+        "Adam launch with the other parameters (cdcgs.train.graph.FUSE_SH_ADAM; default: as it is)",
     )
     parser.add_argument(
         "--gamma-views-per-launch",
@@ -57,7 +67,10 @@ def kernel_options(args):
         cdcgs.render.BLEND_CHUNK,
         cdcgs.complexity.W_MAX_PASS,
         cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH,
+        cdcgs.train.graph.FUSE_SH_ADAM,
     )
+    if getattr(args, "sh_adam", None):
+        cdcgs.train.graph.FUSE_SH_ADAM = args.sh_adam == "adjoint"
     if getattr(args, "gamma_views_per_launch", None):
         cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH = args.gamma_views_per_launch
     if getattr(args, "w_max_pass", None):
@@ -74,4 +87,5 @@ def kernel_options(args):
             cdcgs.render.BLEND_CHUNK,
             cdcgs.complexity.W_MAX_PASS,
             cdcgs.complexity.GAMMA_VIEWS_PER_LAUNCH,
+            cdcgs.train.graph.FUSE_SH_ADAM,
         ) = before

@@ -27,6 +27,7 @@ from .errors import CapacityError, NonFiniteError, PeerError
 from .kernels._checks import find_nonfinite_kernel
 from .kernels._constants import BLOCK_SIZE, MAX_SH_COEFFICIENTS, MAX_SH_DEGREE, TILE_SIZE
 from .kernels._statistics import accumulate_statistics_kernel
+from .kernels.adam import AdamStep
 from .kernels.binning import BinningStart, TileBins, finish_binning, finish_binning_within, start_binning
 from .kernels.blend import (
     blend_backward_kernel,
@@ -52,6 +53,7 @@ __all__ = [
     "PendingBins",
     "PreparedCamera",
     "RasterizeInfo",
+    "ShAdamStep",
     "any_overflowed",
     "bin_view",
     "overflowed_renders",
@@ -456,7 +458,7 @@ def _grad_or_zeros(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tenso
 
 class _ShColor(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii, nonfinite):
+    def forward(ctx, means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii, nonfinite, sh_step):
         colors = means.new_empty(means.shape[0], 3)
         with _warp_scope(means.device):
             _launch(
@@ -476,24 +478,128 @@ class _ShColor(torch.autograd.Function):
         ctx.save_for_backward(means, sh, sh_rest, radii, colors)
         ctx.sh_degree = sh_degree
         ctx.camera = camera
+        ctx.sh_step = sh_step
         return colors
 
     @staticmethod
     def backward(ctx, grad_colors):
         means, sh, sh_rest, radii, colors = ctx.saved_tensors
         grad_means, grad_sh, grad_sh_rest = sh_adjoint(
-            means, sh, sh_rest, ctx.sh_degree, ctx.camera, radii, colors, grad_colors
+            means, sh, sh_rest, ctx.sh_degree, ctx.camera, radii, colors, grad_colors, step=ctx.sh_step
         )
-        return grad_means, grad_sh, grad_sh_rest, None, None, None, None
+        return grad_means, grad_sh, grad_sh_rest, None, None, None, None, None
 
 
-def sh_adjoint(means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii, colors, grad_colors):
+@dataclass(frozen=True)
+class ShAdamStep:
+    """One Adam step of the SH coefficients, which the render's adjoint applies in place of
+    returning their gradients (``rasterize(sh_step=...)``): the SH adjoint writes each coefficient's
+    gradient and Adam reads it back, about 0.4 GB a step at a million Gaussians of degree 3; with a
+    step the kernel that computes a Gaussian's gradients updates its coefficients and moments at
+    once. A replayed training step of one view uses it (:mod:`cdcgs.train.graph`); the update is
+    ``cdcgs.kernels.adam.adam_value``'s, as FusedAdam's (on CUDA built with the SH kernels' fast
+    math: division and square root to a few units in the last place).
+
+    ``rates``: float32 [P, 8] on the render's device, rows as ``FusedAdam.advance`` gives them (read
+    when the adjoint runs); ``rows``: the rows of ``sh``'s and ``sh_rest``'s rates; ``sh_moments``
+    and ``rest_moments``: (exp_avg, exp_avg_sq) of ``sh`` and ``sh_rest``, float32, contiguous, of
+    their shapes; ``halt``: an int32 device flag, the step changes nothing while its first entry is
+    non-zero (None: never). Only the render's own gradient reaches the coefficients: a loss that
+    also reads them otherwise would lose the rest of their gradient."""
+
+    rates: torch.Tensor
+    rows: tuple[int, int]
+    sh_moments: tuple[torch.Tensor, torch.Tensor]
+    rest_moments: tuple[torch.Tensor, torch.Tensor]
+    halt: torch.Tensor | None = None
+
+
+def _check_sh_step(step, sh: torch.Tensor | None, sh_rest: torch.Tensor | None, device: torch.device) -> None:
+    """Refuse an ``sh_step`` that the adjoint could not apply, naming what is wrong (before any work)."""
+    if step is None:
+        return
+    if not isinstance(step, ShAdamStep):
+        raise ValueError(f"sh_step must be a ShAdamStep, got {type(step).__name__}")
+    if sh is None or sh_rest is None:
+        raise ValueError("sh_step updates sh ([N, 1, 3]) and sh_rest: pass both, not colors or sh alone")
+    rates = step.rates
+    if not (
+        isinstance(rates, torch.Tensor)
+        and rates.dtype == torch.float32
+        and rates.dim() == 2
+        and rates.shape[1] == 8
+        and rates.device == device
+        and rates.is_contiguous()
+    ):
+        got = f"{rates.dtype} {list(rates.shape)} on {rates.device}" if isinstance(rates, torch.Tensor) else rates
+        raise ValueError(f"sh_step.rates must be a contiguous float32 [P, 8] tensor on {device}, got {got}")
+    if len(step.rows) != 2 or not all(isinstance(r, int) and 0 <= r < rates.shape[0] for r in step.rows):
+        raise ValueError(f"sh_step.rows must be two rows of its [{rates.shape[0]}, 8] rates, got {step.rows!r}")
+    for name, param, moments in (("sh", sh, step.sh_moments), ("sh_rest", sh_rest, step.rest_moments)):
+        if not param.is_contiguous():
+            raise ValueError(f"sh_step updates {name} in place, which must be contiguous")
+        for moment in moments:
+            if not (
+                isinstance(moment, torch.Tensor)
+                and moment.shape == param.shape
+                and moment.dtype == torch.float32
+                and moment.device == device
+                and moment.is_contiguous()
+            ):
+                got = (
+                    f"{moment.dtype} {list(moment.shape)} on {moment.device}"
+                    if isinstance(moment, torch.Tensor)
+                    else moment
+                )
+                raise ValueError(
+                    f"sh_step's moments of {name} must be contiguous float32 {list(param.shape)} tensors on {device}, got {got}"
+                )
+    _halt_arg(step.halt, device)  # raises for a bad flag
+
+
+def _adam_steps(step: ShAdamStep | None, sh: torch.Tensor, sh_rest: torch.Tensor | None) -> tuple:
+    """The kernels' (dc_step, rest_step) arguments: ``step``'s as Warp structs, or two empty ones."""
+    if step is None:
+        return _NO_STEP, _NO_STEP
+    rates = _wp(step.rates, wp.float32)
+    halt = _wp(step.halt, wp.int32) if step.halt is not None else None
+    structs = []
+    for param, (exp_avg, exp_avg_sq), row in zip((sh, sh_rest), (step.sh_moments, step.rest_moments), step.rows):
+        struct = AdamStep()
+        struct.param = _wp(param.view(-1), wp.float32)
+        struct.exp_avg = _wp(exp_avg.view(-1), wp.float32)
+        struct.exp_avg_sq = _wp(exp_avg_sq.view(-1), wp.float32)
+        struct.rates, struct.row, struct.halt = rates, row, halt
+        structs.append(struct)
+    return tuple(structs)
+
+
+_NO_STEP = AdamStep()  # empty: the kernels write the coefficients' gradients
+
+
+def sh_adjoint(
+    means,
+    sh,
+    sh_rest,
+    sh_degree: int,
+    camera: PreparedCamera,
+    radii,
+    colors,
+    grad_colors,
+    step: ShAdamStep | None = None,
+):
     """The adjoint of the colours of one view (``colors`` = max(SH(direction from ``camera``), 0) of
     the Gaussians whose ``radii`` are positive): (grad means, grad ``sh``, grad ``sh_rest``) for the
-    colours' gradient ``grad_colors`` [N, 3]. Every entry is written (culled Gaussians get 0)."""
+    colours' gradient ``grad_colors`` [N, 3]. Every entry is written (culled Gaussians get 0). With
+    ``step`` (a :class:`ShAdamStep`, checked by the caller) the coefficients' gradients go to its
+    Adam update of ``sh`` and ``sh_rest`` instead, in the same kernel: (grad means, None, None)."""
     grad_means = torch.empty_like(means)
-    grad_sh = torch.empty_like(sh)
-    grad_sh_rest = None if sh_rest is None else torch.empty_like(sh_rest)
+    grad_sh = torch.empty(0, 1, 3, device=means.device) if step is not None else torch.empty_like(sh)
+    grad_sh_rest = None
+    if sh_rest is not None:
+        grad_sh_rest = (
+            torch.empty(0, *sh_rest.shape[1:], device=means.device) if step is not None else torch.empty_like(sh_rest)
+        )
     grad_colors = grad_colors.contiguous()  # held here: a launch argument does not keep its tensor alive
     cuda = means.device.type == "cuda"
     n = means.shape[0]
@@ -506,6 +612,7 @@ def sh_adjoint(means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii
         dim, block = n * (MAX_SH_COEFFICIENTS if cuda else 1), None
         rest = None if sh_rest is None else _arg(sh_rest, wp.vec3)
         grad_rest = None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3)
+    dc_step, rest_step = _adam_steps(step, sh, sh_rest)
     with _warp_scope(means.device):
         _launch(
             kernel,
@@ -520,10 +627,14 @@ def sh_adjoint(means, sh, sh_rest, sh_degree: int, camera: PreparedCamera, radii
                 _arg(radii, wp.vec2i),
                 _arg(colors, wp.vec3),
                 _arg(grad_colors, wp.vec3),
+                dc_step,
+                rest_step,
             ],
             outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3), grad_rest],
             block_dim=block,
         )
+    if step is not None:
+        return grad_means, None, None
     return grad_means, grad_sh, grad_sh_rest
 
 
@@ -843,6 +954,7 @@ def rasterize(
     near_plane: float | None = None,
     render_depth: bool = False,
     capacity: int | None = None,
+    sh_step: ShAdamStep | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, RasterizeInfo]:
     """Render 3D Gaussians from one pinhole camera, differentiably.
 
@@ -875,6 +987,9 @@ def rasterize(
             NaN or inf and CapacityError (with ``.needed``) when the pairs did not fit, in which
             case the image and the gradients are wrong; otherwise the image, alpha and gradients
             are those of a render without ``capacity``. The sort's work grows with it.
+        sh_step: a :class:`ShAdamStep`: the backward pass applies this Adam step to ``sh`` and
+            ``sh_rest`` (both needed) in place and gives them no gradient (a training step's
+            update fused into the SH adjoint; the step's rates are read when the adjoint runs).
 
     Returns:
         image [H, W, 3], alpha [H, W] and a :class:`RasterizeInfo`. All float32 on ``means``' device.
@@ -929,6 +1044,7 @@ def rasterize(
             raise NonFiniteError("background")
         background = means.new_tensor(values)
     _check_capacity(capacity)
+    _check_sh_step(sh_step, sh, sh_rest, device)
     prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
     width, height = prepared.width, prepared.height
 
@@ -957,7 +1073,9 @@ def rasterize(
             means, quats, scales, opacities, prepared, antialiased, nonfinite
         )
         if sh is not None:
-            colors = _ShColor.apply(means, sh, sh_rest, sh_degree, prepared, radii, nonfinite[len(checked) - 1 :])
+            colors = _ShColor.apply(
+                means, sh, sh_rest, sh_degree, prepared, radii, nonfinite[len(checked) - 1 :], sh_step
+            )
 
         pending = None
         if capacity is None:

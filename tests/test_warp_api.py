@@ -17,6 +17,7 @@ import warp_launch  # noqa: E402  (examples/ is put on the path just above)
 PUBLIC_KERNEL_API = {
     "TILE_SIZE",
     "BLOCK_SIZE",
+    "AdamStep",
     "Camera",
     "make_camera",
     "project_gaussians_kernel",
@@ -116,6 +117,7 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
     import warp as wp
 
     from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_kernel
+    from cdcgs.kernels.adam import AdamStep
 
     rng = np.random.default_rng(0)
     n = 64
@@ -152,7 +154,7 @@ def test_generated_sh_adjoint_equals_the_written_out_one(device):
         wp.launch(
             sh_to_color_backward_kernel,
             n,
-            inputs=[means, sh, None, degree, center, None, radii, colors, grad_colors],
+            inputs=[means, sh, None, degree, center, None, radii, colors, grad_colors, AdamStep(), AdamStep()],
             outputs=[*written, None],
             device=device,
         )
@@ -175,6 +177,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
 
     from cdcgs.kernels import sh_to_color_backward_kernel, sh_to_color_grouped_backward_kernel, sh_to_color_kernel
     from cdcgs.kernels._constants import MAX_SH_COEFFICIENTS
+    from cdcgs.kernels.adam import AdamStep
     from cdcgs.kernels.projection import SH_BLOCK, sh_to_color_staged_backward_kernel
 
     rng = np.random.default_rng(1)
@@ -208,7 +211,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
             ):
                 grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                 grad_sh = wp.full((n, stored), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                inputs = [means, sh, None, degree, center, None, radii, colors, grad_colors]
+                inputs = [means, sh, None, degree, center, None, radii, colors, grad_colors, AdamStep(), AdamStep()]
                 wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_sh, None], device=device)
                 outputs[name] = (grads.numpy(), grad_sh.numpy())
                 if stored > 1:  # the same with the coefficients in two arrays, degree 0 apart
@@ -217,7 +220,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
                     grads = wp.full(n, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                     grad_dc = wp.full((n, 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
                     grad_rest = wp.full((n, stored - 1), wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3, device=device)
-                    inputs = [means, dc, rest, degree, center, None, radii, colors, grad_colors]
+                    inputs = [means, dc, rest, degree, center, None, radii, colors, grad_colors, AdamStep(), AdamStep()]
                     wp.launch(backward, dim, inputs=inputs, outputs=[grads, grad_dc, grad_rest], device=device)
                     both = np.concatenate([grad_dc.numpy(), grad_rest.numpy()], axis=1)
                     outputs[name + " split"] = (grads.numpy(), both)
@@ -230,7 +233,7 @@ def test_grouped_sh_adjoint_equals_the_per_gaussian_one(device):
                 wp.launch(
                     sh_to_color_staged_backward_kernel,
                     -(-n // SH_BLOCK) * SH_BLOCK,
-                    inputs=[means, dc, rest, degree, center, None, radii, colors, grad_colors],
+                    inputs=[means, dc, rest, degree, center, None, radii, colors, grad_colors, AdamStep(), AdamStep()],
                     outputs=[grads, grad_dc, grad_rest],
                     block_dim=SH_BLOCK,
                     device=device,

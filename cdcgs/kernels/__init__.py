@@ -7,7 +7,8 @@ view a launch, or several: ``complexity_views_kernel``),
 the exact KNN (``knn_search``), the training loss, L1 + D-SSIM, fused (``ssim_l1_*``: two
 separable passes forward, two backward), and Adam on every row or on selected ones
 (``fused_adam_kernel``: every parameter in one launch, ``adam_quads`` threads a parameter;
-``selective_adam_kernel``: one parameter), and 3DGS-MCMC's noise on the means
+``selective_adam_kernel``: one parameter; ``AdamStep``: an Adam step that the SH adjoints apply
+in place of writing the coefficients' gradients, or, empty, ``AdamStep()``), and 3DGS-MCMC's noise on the means
 (``mcmc_noise_kernel``).
 ``examples/warp_launch.py`` renders an image with them.
 
@@ -17,7 +18,7 @@ callers that manage their own buffers; the submodules (``projection``, ``binning
 """
 
 from ._constants import BLOCK_SIZE, TILE_SIZE
-from .adam import adam_quads, fused_adam_kernel, selective_adam_kernel
+from .adam import AdamStep, adam_quads, fused_adam_kernel, selective_adam_kernel
 from .binning import TileBins, bin_gaussians
 from .blend import (
     blend_backward_kernel,
@@ -50,6 +51,7 @@ __all__ = [
     "BLOCK_SIZE",
     "SH_BLOCK",
     "TILE_SIZE",
+    "AdamStep",
     "Camera",
     "TileBins",
     "adam_quads",

@@ -26,7 +26,14 @@ where Adam would still move it by its momentum.
 
 import warp as wp
 
-__all__ = ["VALUES_PER_THREAD", "adam_quads", "fused_adam_kernel", "selective_adam_kernel"]
+__all__ = [
+    "VALUES_PER_THREAD",
+    "AdamStep",
+    "adam_quads",
+    "adam_step_value",
+    "fused_adam_kernel",
+    "selective_adam_kernel",
+]
 
 wp.set_module_options({"fast_math": False})
 
@@ -39,6 +46,33 @@ def adam_quads(count: int) -> int:
     VALUES_PER_THREAD consecutive values, the last one possibly partial. A parameter's first launch
     index is the sum of the quads of those before it, and the launch's ``dim`` the sum of all."""
     return -(-count // VALUES_PER_THREAD)
+
+
+@wp.func
+def adam_value(
+    p: float,
+    g: float,
+    m: float,
+    v: float,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    one_minus_beta1: float,
+    one_minus_beta2: float,
+    eps: float,
+    bias_correction1: float,
+    bias_correction2_sqrt: float,
+):
+    """One Adam step of one value ``p`` with gradient ``g`` and moments ``m``, ``v``: (new p, new m,
+    new v). m = b1 m + (1 - b1) g, v = b2 v + (1 - b2) g^2, p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2)
+    + eps), as torch computes it (bc = 1 - b^step). ``one_minus_beta1`` and ``one_minus_beta2`` are
+    1 - b computed by the caller in double precision, as torch's Adam passes them (1 - float32(0.999)
+    is 1.3e-5 off). ``adam_update_quad`` repeats it in CUDA C, operation for operation: change both
+    together."""
+    m = beta1 * m + one_minus_beta1 * g
+    v = beta2 * v + one_minus_beta2 * g * g
+    p = p - (lr / bias_correction1) * m / (wp.sqrt(v) / bias_correction2_sqrt + eps)
+    return wp.vec3(p, m, v)
 
 
 @wp.func
@@ -57,22 +91,73 @@ def adam_update(
     bias_correction1: float,
     bias_correction2_sqrt: float,
 ):
-    """One Adam step of value ``i``: m = b1 m + (1 - b1) g, v = b2 v + (1 - b2) g^2,
-    p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps), as torch computes it (bc = 1 - b^step).
-    ``one_minus_beta1`` and ``one_minus_beta2`` are 1 - b computed by the caller in double
-    precision, as torch's Adam passes them (1 - float32(0.999) is 1.3e-5 off). ``adam_update_quad``
-    repeats it in CUDA C, operation for operation: change both together."""
-    g = grad[i]
-    m = beta1 * exp_avg[i] + one_minus_beta1 * g
-    v = beta2 * exp_avg_sq[i] + one_minus_beta2 * g * g
-    exp_avg[i] = m
-    exp_avg_sq[i] = v
-    param[i] = param[i] - (lr / bias_correction1) * m / (wp.sqrt(v) / bias_correction2_sqrt + eps)
+    """``adam_value`` of value ``i`` of the arrays, in place."""
+    out = adam_value(
+        param[i],
+        grad[i],
+        exp_avg[i],
+        exp_avg_sq[i],
+        lr,
+        beta1,
+        beta2,
+        one_minus_beta1,
+        one_minus_beta2,
+        eps,
+        bias_correction1,
+        bias_correction2_sqrt,
+    )
+    exp_avg[i] = out[1]
+    exp_avg_sq[i] = out[2]
+    param[i] = out[0]
+
+
+@wp.struct
+class AdamStep:
+    """One Adam step of one parameter, for a kernel that applies it where it would write the
+    parameter's gradient (the SH adjoint of a replayed training step,
+    :func:`cdcgs.render.sh_adjoint`): the parameter and its two moments as flat float32 arrays,
+    ``rates`` (``fused_adam_kernel``'s rates table, on the device) and the row of it that holds this
+    parameter's, and ``halt`` (int32; while ``halt[0]`` is non-zero nothing changes; empty: never).
+    An empty ``param`` means no step: the kernel writes the gradient instead."""
+
+    param: wp.array(dtype=float)
+    exp_avg: wp.array(dtype=float)
+    exp_avg_sq: wp.array(dtype=float)
+    rates: wp.array2d(dtype=float)
+    row: int
+    halt: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def adam_step_value(step: AdamStep, i: int, g: float):
+    """``adam_value`` of value ``i`` of ``step``'s parameter with gradient ``g``, in place, unless
+    its halt flag is set."""
+    if step.halt.shape[0] > 0:
+        if step.halt[0] != 0:
+            return
+    r = step.row
+    out = adam_value(
+        step.param[i],
+        g,
+        step.exp_avg[i],
+        step.exp_avg_sq[i],
+        step.rates[r, 0],
+        step.rates[r, 1],
+        step.rates[r, 2],
+        step.rates[r, 3],
+        step.rates[r, 4],
+        step.rates[r, 5],
+        step.rates[r, 6],
+        step.rates[r, 7],
+    )
+    step.exp_avg[i] = out[1]
+    step.exp_avg_sq[i] = out[2]
+    step.param[i] = out[0]
 
 
 @wp.func_native(
     """
-    // adam_update's arithmetic, operation for operation
+    // adam_value's arithmetic, operation for operation
     auto update = [&](float g, float& p, float& m, float& v) {
         m = beta1 * m + one_minus_beta1 * g;
         v = beta2 * v + one_minus_beta2 * g * g;

@@ -13,6 +13,7 @@ import warp as wp
 
 from ._constants import MAX_SH_COEFFICIENTS, SH_C0, SH_C1, SH_C2, SH_C3
 from ._lanes import GROUP_SIZE, block_sync, group_read
+from .adam import AdamStep, adam_step_value
 
 __all__ = [
     "ALPHA_THRESHOLD",
@@ -283,6 +284,30 @@ def store_sh_gradient(
         grad_sh_rest_out[i, j - 1] = value
 
 
+@wp.func
+def give_sh_gradient(
+    grad_sh_out: wp.array2d(dtype=wp.vec3),
+    grad_sh_rest_out: wp.array2d(dtype=wp.vec3),
+    dc_step: AdamStep,
+    rest_step: AdamStep,
+    i: int,
+    j: int,
+    rest_count: int,
+    value: wp.vec3,
+):
+    """Coefficient j's gradient ``value``: written where :func:`sh_coefficient` reads the
+    coefficient, or, with the steps (their ``param`` not empty: the degree-0 coefficients [N, 1, 3]
+    and the ``rest_count`` others [N, rest_count, 3], flat), given to their Adam step instead."""
+    if dc_step.param.shape[0] == 0:
+        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, value)
+    elif j == 0:
+        for c in range(3):
+            adam_step_value(dc_step, 3 * i + c, value[c])
+    else:
+        for c in range(3):
+            adam_step_value(rest_step, 3 * (i * rest_count + j - 1) + c, value[c])
+
+
 @wp.kernel
 def sh_to_color_kernel(
     gauss_means: wp.array(dtype=wp.vec3),
@@ -476,6 +501,8 @@ def sh_to_color_backward_kernel(
     radii: wp.array(dtype=wp.vec2i),
     colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
+    dc_step: AdamStep,
+    rest_step: AdamStep,
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
     grad_sh_rest_out: wp.array2d(dtype=wp.vec3),
@@ -483,17 +510,21 @@ def sh_to_color_backward_kernel(
     """Adjoint of ``sh_to_color_kernel``, written out: each thread owns its Gaussian's gradients, so
     they are plain stores (every entry written, coefficients above the degree and culled Gaussians
     get 0), no atomics. ``colors`` is the forward output: colour = max(raw, 0) passes the gradient
-    where it is positive."""
+    where it is positive. With ``dc_step`` and ``rest_step`` (not empty; ``gauss_sh`` [N, 1] and
+    ``gauss_sh_rest`` given) the coefficients' gradients are not written: each thread applies the
+    steps' Adam update to its Gaussian's coefficients with them, after reading them."""
     i = wp.tid()
     center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
     if camera_on_device.shape[0] > 0:
         center = camera_on_device[0].center
     stored = sh_stored(gauss_sh, gauss_sh_rest)
+    rest_count = gauss_sh_rest.shape[1]
+    zero = wp.vec3(0.0, 0.0, 0.0)
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:
             for j in range(stored):
-                store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
-            grad_means_out[i] = wp.vec3(0.0, 0.0, 0.0)
+                give_sh_gradient(grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, j, rest_count, zero)
+            grad_means_out[i] = zero
             return
     v = gauss_means[i] - center
     d = wp.normalize(v)
@@ -505,12 +536,12 @@ def sh_to_color_backward_kernel(
     w = sh_vector()
     for j in range(MAX_SH_COEFFICIENTS):
         if j < count:
-            store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, basis[j] * g)
-            w[j] = wp.dot(sh_coefficient(gauss_sh, gauss_sh_rest, i, j), g)
+            w[j] = wp.dot(sh_coefficient(gauss_sh, gauss_sh_rest, i, j), g)  # before a step changes it
+            give_sh_gradient(grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, j, rest_count, basis[j] * g)
         elif j < stored:
-            store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
+            give_sh_gradient(grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, j, rest_count, zero)
     for j in range(MAX_SH_COEFFICIENTS, stored):
-        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.vec3(0.0, 0.0, 0.0))
+        give_sh_gradient(grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, j, rest_count, zero)
     grad_means_out[i] = sh_mean_gradient(v, d, w, sh_degree)
 
 
@@ -543,11 +574,14 @@ def sh_to_color_grouped_backward_kernel(
     radii: wp.array(dtype=wp.vec2i),
     colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
+    dc_step: AdamStep,
+    rest_step: AdamStep,
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
     grad_sh_rest_out: wp.array2d(dtype=wp.vec3),
 ):
-    """``sh_to_color_backward_kernel`` with one thread per coefficient (dim MAX_SH_COEFFICIENTS * N = 16 N, CUDA only)."""
+    """``sh_to_color_backward_kernel`` with one thread per coefficient (dim MAX_SH_COEFFICIENTS * N = 16 N, CUDA
+    only). With the steps, a coefficient's thread reads it before it gives the step its gradient."""
     t = wp.tid()
     center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
     if camera_on_device.shape[0] > 0:
@@ -555,11 +589,12 @@ def sh_to_color_grouped_backward_kernel(
     i = t // MAX_SH_COEFFICIENTS
     j = t - i * MAX_SH_COEFFICIENTS
     stored = sh_stored(gauss_sh, gauss_sh_rest)
+    rest_count = gauss_sh_rest.shape[1]
     zero = wp.vec3(0.0, 0.0, 0.0)
     if radii.shape[0] > 0:
         if radii[i][0] <= 0:  # the whole half warp leaves together
             for k in range(j, stored, MAX_SH_COEFFICIENTS):
-                store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, k, zero)
+                give_sh_gradient(grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, k, rest_count, zero)
             if j == 0:
                 grad_means_out[i] = zero
             return
@@ -572,9 +607,11 @@ def sh_to_color_grouped_backward_kernel(
         coefficient = sh_coefficient(gauss_sh, gauss_sh_rest, i, j)
     g = clamp_gradient(colors[i], grad_colors[i])
     if j < stored:
-        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, j, wp.where(j < count, b * g, zero))
+        give_sh_gradient(
+            grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, j, rest_count, wp.where(j < count, b * g, zero)
+        )
     for k in range(j + MAX_SH_COEFFICIENTS, stored, MAX_SH_COEFFICIENTS):
-        store_sh_gradient(grad_sh_out, grad_sh_rest_out, i, k, zero)
+        give_sh_gradient(grad_sh_out, grad_sh_rest_out, dc_step, rest_step, i, k, rest_count, zero)
     # every lane gathers the group's weights dot(coefficient, g); lane 0 writes the mean's gradient
     w_j = wp.dot(coefficient, g)
     w = sh_vector()
@@ -646,6 +683,8 @@ def sh_to_color_staged_backward_kernel(
     radii: wp.array(dtype=wp.vec2i),
     colors: wp.array(dtype=wp.vec3),
     grad_colors: wp.array(dtype=wp.vec3),
+    dc_step: AdamStep,
+    rest_step: AdamStep,
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_sh_out: wp.array2d(dtype=wp.vec3),
     grad_sh_rest_out: wp.array(dtype=float),
@@ -653,7 +692,10 @@ def sh_to_color_staged_backward_kernel(
     """``sh_to_color_backward_kernel`` with ``gauss_sh_rest`` and its gradient as flat float arrays
     (N * 3 * (K - 1)), staged in shared memory, CUDA only. Launch with dim N rounded up to a
     multiple of SH_BLOCK and block_dim exactly SH_BLOCK: a thread's slot is its id modulo SH_BLOCK,
-    so a larger block would put two threads on one slot."""
+    so a larger block would put two threads on one slot. With ``dc_step`` and ``rest_step`` (not
+    empty) the coefficients' gradients are not written: the thread of a Gaussian applies the Adam
+    step to its degree-0 coefficients, and the block's copy-out applies it to the others, which the
+    block alone reads and writes (read before: the copy-in), coalesced."""
     t = wp.tid()
     center = camera_center  # or, with a non-empty camera_on_device, its entry 0's centre
     if camera_on_device.shape[0] > 0:
@@ -663,6 +705,7 @@ def sh_to_color_staged_backward_kernel(
     row = gauss_sh_rest.shape[0] // wp.max(n, 1)  # floats per Gaussian: 3 (K - 1)
     start = (t - lane) * row
     end = wp.min(n * row, start + SH_BLOCK * row)
+    stepped = dc_step.param.shape[0] > 0
     for k in range(start + lane, end, SH_BLOCK):  # the block's rows, coalesced
         sh_stage(SH_STAGE_STORE, k - start, gauss_sh_rest[k])
     block_sync()
@@ -674,8 +717,8 @@ def sh_to_color_staged_backward_kernel(
         if radii.shape[0] > 0:
             if radii[t][0] <= 0:
                 culled = 1
+        grad_dc = zero
         if culled == 1:
-            grad_sh_out[t, 0] = zero
             for k in range(row):
                 sh_stage(SH_STAGE_STORE, own + k, 0.0)
             grad_means_out[t] = zero
@@ -686,7 +729,7 @@ def sh_to_color_staged_backward_kernel(
             count = (sh_degree + 1) * (sh_degree + 1)
             g = clamp_gradient(colors[t], grad_colors[t])
             w = sh_vector()
-            grad_sh_out[t, 0] = basis[0] * g
+            grad_dc = basis[0] * g
             w[0] = wp.dot(gauss_sh[t, 0], g)
             # A constant count (16): unrolled, every vector index a constant (registers, not local memory).
             for j in range(1, MAX_SH_COEFFICIENTS):
@@ -698,7 +741,15 @@ def sh_to_color_staged_backward_kernel(
                     else:
                         sh_stage_store_vec3(slot, zero)
             grad_means_out[t] = sh_mean_gradient(v, d, w, sh_degree)
+        if stepped:  # after w[0] read the coefficient
+            for c in range(3):
+                adam_step_value(dc_step, 3 * t + c, grad_dc[c])
+        else:
+            grad_sh_out[t, 0] = grad_dc
     block_sync()
     for k in range(start + lane, end, SH_BLOCK):
-        grad_sh_rest_out[k] = sh_stage(SH_STAGE_LOAD, k - start, 0.0)
+        if stepped:
+            adam_step_value(rest_step, k, sh_stage(SH_STAGE_LOAD, k - start, 0.0))
+        else:
+            grad_sh_rest_out[k] = sh_stage(SH_STAGE_LOAD, k - start, 0.0)
     block_sync()  # a capped grid runs a block again: its next copy-in must wait for this copy-out

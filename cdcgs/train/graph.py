@@ -55,12 +55,18 @@ from ..kernels._lookahead import select_camera_at_kernel
 from ..kernels.adam import adam_quads
 from ..kernels.blend import VIEW_TABLE_COLUMNS, VIEW_TABLE_MAP
 from ..kernels.projection import Camera
-from ..render import bin_view, rasterize
+from ..render import ShAdamStep, bin_view, rasterize
 from .distributed import my_positions
 from .lookahead import READ_EVERY, halt_refusal
 from .optim import MAX_LAUNCH_THREADS, FusedAdam, launch_adam
 
 __all__ = ["GammaGroups", "GraphSteps", "capture", "free_earlier_graphs", "graph_refusal", "mark_step_graph"]
+
+# A replayed step of one view on one process applies Adam to the SH coefficients inside their
+# adjoint (rasterize's sh_step) instead of writing their gradients for the Adam launch to read back:
+# 48 of a degree-3 Gaussian's 59 values. False: every parameter goes through the Adam launch (for
+# comparison; the same step, FusedAdam's arithmetic either way).
+FUSE_SH_ADAM = True
 
 # Host slots of the per-step copies: the host writes slot (iteration % RING) and queues a copy
 # from it; a read of the device (at least every READ_EVERY iterations) waits for every copy, so
@@ -178,6 +184,8 @@ def cameras_on_device(cameras: list, device: torch.device) -> wp.array:
 class GraphSteps:
     """The captured step of one trainer (:class:`cdcgs.train.trainer.Trainer`), and when to take it."""
 
+    fuses_sh_adam = True  # whether _body's render may take the SH coefficients' Adam step (FUSE_SH_ADAM)
+
     def __init__(self, trainer):
         self.trainer = trainer
         self.device = trainer.device
@@ -212,6 +220,8 @@ class GraphSteps:
         self.capture_wait_seconds = 0.0
         self.replays = 0
         self._table = self._rates = self._grads = None
+        self._adam_params: list = []  # the parameters of the Adam launch: self._params less the fused ones
+        self._sh_step: ShAdamStep | None = None  # the SH coefficients' step, fused into their adjoint
         self._batch_slots: list = []  # one-camera arrays of the step's views (--dist-exchange colours)
 
     # ----------------------------------------------------------------------------- when
@@ -299,12 +309,21 @@ class GraphSteps:
         self.release()  # the old graph's memory goes back before the new one takes its own
         capacity = max(c for c in known if c is not None)
         self.capacity = capacity
-        self._params = [p for group in trainer.optimizer.param_groups for p in group["params"]]
+        params = [p for group in trainer.optimizer.param_groups for p in group["params"]]
+        fused = self._fused_params()
+        self._adam_params = [p for p in params if all(p is not f for f in fused)]
+        self._params = self._adam_params + fused  # the rates' rows: the Adam launch's first, in its table's order
         count = len(self._params)
         self._rates = torch.zeros(count, 8, dtype=torch.float32, device=self.device)
         self._rates_ring = torch.zeros(RING, count, 8, dtype=torch.float32, pin_memory=self.cuda)
         self._rates_slots = self._rates_ring.numpy()
-        self._table = torch.zeros(count, 7, dtype=torch.int64, device=self.device)
+        self._table = torch.zeros(len(self._adam_params), 7, dtype=torch.int64, device=self.device)
+        self._sh_step = None
+        if fused:
+            state = trainer.optimizer.state
+            rows = (len(self._adam_params), len(self._adam_params) + 1)
+            moments = [(state[p]["exp_avg"], state[p]["exp_avg_sq"]) for p in fused]
+            self._sh_step = ShAdamStep(self._rates, rows, moments[0], moments[1], lookahead.halt)
         self._background = background
         self._scale = scale
         self.captures += 1
@@ -319,10 +338,8 @@ class GraphSteps:
         graph, waited, seconds = capture(self.device, self._body)
         self.capture_wait_seconds += waited
         self.capture_seconds += seconds
-        self._grads = [p.grad for p in self._params]  # the graph's own memory: the table names it
-        missing = [name for name, p in trainer.model.params.items() if p.grad is None]
-        if missing:
-            raise RuntimeError(f"a captured step left {', '.join(missing)} without a gradient")
+        self._grads = [p.grad for p in self._adam_params]  # the graph's own memory: the table names it
+        self._check_gradients()
         self._fill_table()
         trainer.optimizer.zero_grad(set_to_none=True)
         self.graph, self.key = graph, key  # only a capture that succeeded is replayed
@@ -379,6 +396,7 @@ class GraphSteps:
                 background=self._background,
                 antialiased=config.antialiased,
                 capacity=self.capacity,
+                sh_step=self._sh_step,
             )
             lookahead.note(info, 0, 0, trainer.model.num, self._scale, where=pair)  # take() records the view
             photo = photos.index_select(0, pair[1:]).squeeze(0)
@@ -401,14 +419,41 @@ class GraphSteps:
     def _adam(self, visible: torch.Tensor | None, halt: torch.Tensor) -> None:
         """One Adam launch over every parameter, through the address table (on the CPU, this
         step's gradients' table, filled here); nothing while ``halt`` is set."""
-        threads = sum(adam_quads(p.numel()) for p in self._params)
+        threads = sum(adam_quads(p.numel()) for p in self._adam_params)
         if not self.cuda:  # one operation at a time: this step's gradients
-            self._grads = [p.grad for p in self._params]
+            self._check_gradients()
+            self._grads = [p.grad for p in self._adam_params]
             self._fill_table()
         launch_adam(self._table, self._rates, threads, visible, halt)
         if not self.cuda:
             self.trainer.optimizer.zero_grad(set_to_none=True)
             self._grads = None
+
+    def _fused_params(self) -> list:
+        """The parameters whose Adam step the SH adjoint applies (``FUSE_SH_ADAM``): the SH
+        coefficients of a step of one view on one process with Adam on every row; else none."""
+        trainer = self.trainer
+        params = trainer.model.params
+        if not (FUSE_SH_ADAM and self.fuses_sh_adam and self.batch == 1 and not trainer.ranks.distributed):
+            return []
+        if trainer.config.optimizer == "selective" or "sh_dc" not in params or "sh_rest" not in params:
+            return []
+        return [params["sh_dc"], params["sh_rest"]]
+
+    def _check_gradients(self) -> None:
+        """After a step's backward pass: a gradient for every parameter of the Adam launch, none for
+        those whose step the SH adjoint took (a gradient there came from another part of the loss,
+        which the fused step would drop)."""
+        names = {id(p): name for name, p in self.trainer.model.params.items()}
+        missing = [names.get(id(p), "?") for p in self._adam_params if p.grad is None]
+        if missing:
+            raise RuntimeError(f"a captured step left {', '.join(missing)} without a gradient")
+        extra = [names.get(id(p), "?") for p in self._params[len(self._adam_params) :] if p.grad is not None]
+        if extra:
+            raise RuntimeError(
+                f"a replayed step's loss gives {', '.join(extra)} a gradient besides the render's, which the Adam step "
+                "fused into the SH adjoint would drop: set cdcgs.train.graph.FUSE_SH_ADAM = False"
+            )
 
     def _batch_cameras(self, cameras, prepared) -> list:
         """The step's views' cameras on the device, in batch order (``where``'s last entries), as
@@ -428,7 +473,7 @@ class GraphSteps:
         first quad, its number of values and its values per row."""
         rows, start = [], 0
         optimizer = self.trainer.optimizer
-        for p, grad in zip(self._params, self._grads):
+        for p, grad in zip(self._adam_params, self._grads):
             state = optimizer.state[p]
             addresses = [x.data_ptr() for x in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
             rows.append([*addresses, start, p.numel(), p.numel() // p.shape[0] if p.shape[0] else 1])
@@ -438,7 +483,8 @@ class GraphSteps:
     def release(self) -> None:
         """Let go of the graph, its memory (the gradients in its pool) and the tensors it names."""
         self.graph = self.key = None
-        self._grads = self._params = self._table = None
+        self._grads = self._params = self._table = self._sh_step = None
+        self._adam_params = []
         self.capacity = 0
 
     def summary(self) -> dict:
@@ -448,6 +494,7 @@ class GraphSteps:
             "capture_seconds": self.capture_seconds,
             "capture_wait_seconds": self.capture_wait_seconds,
             "freed_earlier_graphs": self.freed_graphs,
+            "sh_adam_in_adjoint": bool(self._fused_params()),
         }
 
 

@@ -139,6 +139,8 @@ class ShardGraphSteps(GraphSteps):
     or reads its count alike (both from the counts agreed at the last read), so a process that
     captures again (its own tensors moved) while another replays waits for nothing it lacks."""
 
+    fuses_sh_adam = False  # its render is the shard's, which takes no SH step
+
     def __init__(self, trainer):
         super().__init__(trainer)
         # one camera slot per process: a round renders every process's view of it

@@ -354,7 +354,7 @@ def rasterize_shard(
                 means2d, conics, depths, composited, radii = _Project.apply(
                     means, quats, scales, opacities, view, antialiased, nonfinite
                 )
-                colors = _ShColor.apply(means, sh, sh_rest, sh_degree, view, radii, nonfinite[len(_NAMES) - 1 :])
+                colors = _ShColor.apply(means, sh, sh_rest, sh_degree, view, radii, nonfinite[len(_NAMES) - 1 :], None)
                 fields = [means2d, conics, colors, composited, depths]
                 if transfers is not None and v != rank:
                     fields = list(_AwaitGradients.apply(transfers, *fields))
