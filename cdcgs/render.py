@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 import warp as wp
+from torch.autograd.graph import increment_version
 
 from ._interop import halt_arg as _halt_arg
 from ._interop import launch as _launch
@@ -504,18 +505,23 @@ class ShAdamStep:
     when the adjoint runs); ``rows``: the rows of ``sh``'s and ``sh_rest``'s rates; ``sh_moments``
     and ``rest_moments``: (exp_avg, exp_avg_sq) of ``sh`` and ``sh_rest``, float32, contiguous, of
     their shapes; ``halt``: an int32 device flag, the step changes nothing while its first entry is
-    non-zero (None: never). Only the render's own gradient reaches the coefficients: a loss that
-    also reads them otherwise would lose the rest of their gradient."""
+    non-zero (None: never); ``selective``: step only the Gaussians the view sees (both radii
+    positive, ``info.visible``), as ``FusedAdam.step(selected)`` with that mask. Only the render's
+    own gradient reaches the coefficients: a loss that also reads them otherwise would lose the
+    rest of their gradient."""
 
     rates: torch.Tensor
     rows: tuple[int, int]
     sh_moments: tuple[torch.Tensor, torch.Tensor]
     rest_moments: tuple[torch.Tensor, torch.Tensor]
     halt: torch.Tensor | None = None
+    selective: bool = False
 
 
-def _check_sh_step(step, sh: torch.Tensor | None, sh_rest: torch.Tensor | None, device: torch.device) -> None:
-    """Refuse an ``sh_step`` that the adjoint could not apply, naming what is wrong (before any work)."""
+def _check_sh_step(step, sh, sh_rest, device: torch.device, given: tuple) -> None:
+    """Refuse an ``sh_step`` that the adjoint could not apply, naming what is wrong (before any work).
+    ``sh`` and ``sh_rest`` as checked, ``given`` as the caller passed them (a step updates those: a
+    checked copy would take it instead)."""
     if step is None:
         return
     if not isinstance(step, ShAdamStep):
@@ -535,9 +541,12 @@ def _check_sh_step(step, sh: torch.Tensor | None, sh_rest: torch.Tensor | None, 
         raise ValueError(f"sh_step.rates must be a contiguous float32 [P, 8] tensor on {device}, got {got}")
     if len(step.rows) != 2 or not all(isinstance(r, int) and 0 <= r < rates.shape[0] for r in step.rows):
         raise ValueError(f"sh_step.rows must be two rows of its [{rates.shape[0]}, 8] rates, got {step.rows!r}")
-    for name, param, moments in (("sh", sh, step.sh_moments), ("sh_rest", sh_rest, step.rest_moments)):
-        if not param.is_contiguous():
-            raise ValueError(f"sh_step updates {name} in place, which must be contiguous")
+    for name, param, original, moments in (
+        ("sh", sh, given[0], step.sh_moments),
+        ("sh_rest", sh_rest, given[1], step.rest_moments),
+    ):
+        if param is not original:
+            raise ValueError(f"sh_step updates {name} in place, which must be a contiguous float32 tensor on {device}")
         for moment in moments:
             if not (
                 isinstance(moment, torch.Tensor)
@@ -557,12 +566,13 @@ def _check_sh_step(step, sh: torch.Tensor | None, sh_rest: torch.Tensor | None, 
     _halt_arg(step.halt, device)  # raises for a bad flag
 
 
-def _adam_steps(step: ShAdamStep | None, sh: torch.Tensor, sh_rest: torch.Tensor | None) -> tuple:
+def _adam_steps(step: ShAdamStep | None, sh: torch.Tensor, sh_rest: torch.Tensor | None, radii) -> tuple:
     """The kernels' (dc_step, rest_step) arguments: ``step``'s as Warp structs, or two empty ones."""
     if step is None:
         return _NO_STEP, _NO_STEP
     rates = _wp(step.rates, wp.float32)
     halt = _wp(step.halt, wp.int32) if step.halt is not None else None
+    visible = _wp(radii, wp.vec2i) if step.selective else None
     structs = []
     for param, (exp_avg, exp_avg_sq), row in zip((sh, sh_rest), (step.sh_moments, step.rest_moments), step.rows):
         struct = AdamStep()
@@ -570,6 +580,7 @@ def _adam_steps(step: ShAdamStep | None, sh: torch.Tensor, sh_rest: torch.Tensor
         struct.exp_avg = _wp(exp_avg.view(-1), wp.float32)
         struct.exp_avg_sq = _wp(exp_avg_sq.view(-1), wp.float32)
         struct.rates, struct.row, struct.halt = rates, row, halt
+        struct.radii, struct.row_width = visible, max(param[0].numel() if param.shape[0] else 1, 1)
         structs.append(struct)
     return tuple(structs)
 
@@ -612,7 +623,7 @@ def sh_adjoint(
         dim, block = n * (MAX_SH_COEFFICIENTS if cuda else 1), None
         rest = None if sh_rest is None else _arg(sh_rest, wp.vec3)
         grad_rest = None if grad_sh_rest is None else _arg(grad_sh_rest, wp.vec3)
-    dc_step, rest_step = _adam_steps(step, sh, sh_rest)
+    dc_step, rest_step = _adam_steps(step, sh, sh_rest, radii)
     with _warp_scope(means.device):
         _launch(
             kernel,
@@ -633,7 +644,9 @@ def sh_adjoint(
             outputs=[_arg(grad_means, wp.vec3), _arg(grad_sh, wp.vec3), grad_rest],
             block_dim=block,
         )
-    if step is not None:
+    if step is not None:  # updated in place: as an in-place op would, tell torch
+        increment_version(sh)
+        increment_version(sh_rest)
         return grad_means, None, None
     return grad_means, grad_sh, grad_sh_rest
 
@@ -1000,6 +1013,7 @@ def rasterize(
             image, both or neither of ``camera`` and viewmat/K/width/height; the message names the
             argument.
     """
+    given = (sh, sh_rest)  # the checks below may copy: a step must update these
     means = _check_tensor("means", means, (None, 3), None)
     device = means.device
     n = means.shape[0]
@@ -1044,7 +1058,7 @@ def rasterize(
             raise NonFiniteError("background")
         background = means.new_tensor(values)
     _check_capacity(capacity)
-    _check_sh_step(sh_step, sh, sh_rest, device)
+    _check_sh_step(sh_step, sh, sh_rest, device, given)
     prepared = _resolve_camera(camera, viewmat, K, width, height, near_plane)
     width, height = prepared.width, prepared.height
 

@@ -67,8 +67,7 @@ def step_of(optimizer, leaves, halt=None, selective=False) -> ShAdamStep:
     params = [leaves["sh"], leaves["sh_rest"]]
     rates = torch.tensor(optimizer.advance(params), dtype=torch.float32).to(params[0].device)
     moments = [(optimizer.state[p]["exp_avg"], optimizer.state[p]["exp_avg_sq"]) for p in params]
-    assert not selective, "selective steps come later"
-    return ShAdamStep(rates, (0, 1), moments[0], moments[1], halt)
+    return ShAdamStep(rates, (0, 1), moments[0], moments[1], halt, selective)
 
 
 def copy_of(leaves):
@@ -92,7 +91,7 @@ def torch_adam_step(leaves, grads, optimizer):
     return copies
 
 
-@pytest.mark.parametrize("selective", [False], ids=["adam"])
+@pytest.mark.parametrize("selective", [False, True], ids=["adam", "selective"])
 @pytest.mark.parametrize("kernel", ["staged", "grouped"])
 @pytest.mark.parametrize("degree", [1, 3])
 def test_the_adjoints_step_is_adams_step_with_its_gradients(device, degree, kernel, selective, monkeypatch):
@@ -225,6 +224,22 @@ def test_a_bad_step_is_refused_before_anything_moves(change, message):
     with pytest.raises(ValueError, match=message):
         render_loss(scene, fused, degree, bad)
     assert torch.equal(fused["sh_rest"], leaves["sh_rest"])
+
+
+def test_a_step_refuses_coefficients_it_could_only_update_a_copy_of():
+    """A non-contiguous ``sh_rest`` would be checked into a copy, which the step would update
+    instead: refused, nothing moves."""
+    scene, leaves, degree = split_scene("cpu", 3)
+    wide = torch.zeros(leaves["sh_rest"].shape[0], 15, 6)
+    wide[..., ::2] = leaves["sh_rest"].detach()
+    strided = wide[..., ::2].requires_grad_()
+    assert not strided.is_contiguous()
+    leaves = {**leaves, "sh_rest": strided}
+    params = copy_of(leaves)  # contiguous copies: the optimizer's moments have the right shapes
+    step = step_of(optimizer_with_history(params, torch.Generator().manual_seed(3)), params)
+    with pytest.raises(ValueError, match="sh_rest in place"):
+        render_loss(scene, leaves, degree, step)
+    assert torch.equal(strided, wide[..., ::2])
 
 
 def test_a_step_needs_the_coefficients_in_two_tensors():

@@ -118,7 +118,10 @@ class AdamStep:
     :func:`cdcgs.render.sh_adjoint`): the parameter and its two moments as flat float32 arrays,
     ``rates`` (``fused_adam_kernel``'s rates table, on the device) and the row of it that holds this
     parameter's, and ``halt`` (int32; while ``halt[0]`` is non-zero nothing changes; empty: never).
-    An empty ``param`` means no step: the kernel writes the gradient instead."""
+    ``radii`` (not empty: selective Adam) the view's radii, one per row of ``row_width`` values:
+    only the rows whose two radii are positive (the Gaussians the view sees) are stepped, the others
+    keep their values and moments. An empty ``param`` means no step: the kernel writes the gradient
+    instead."""
 
     param: wp.array(dtype=float)
     exp_avg: wp.array(dtype=float)
@@ -126,14 +129,20 @@ class AdamStep:
     rates: wp.array2d(dtype=float)
     row: int
     halt: wp.array(dtype=wp.int32)
+    radii: wp.array(dtype=wp.vec2i)
+    row_width: int
 
 
 @wp.func
 def adam_step_value(step: AdamStep, i: int, g: float):
     """``adam_value`` of value ``i`` of ``step``'s parameter with gradient ``g``, in place, unless
-    its halt flag is set."""
+    its halt flag is set or (selective) its row is not selected."""
     if step.halt.shape[0] > 0:
         if step.halt[0] != 0:
+            return
+    if step.radii.shape[0] > 0:
+        radius = step.radii[i // step.row_width]
+        if radius[0] <= 0 or radius[1] <= 0:
             return
     r = step.row
     out = adam_value(

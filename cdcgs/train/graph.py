@@ -5,7 +5,8 @@ A step's host work (Python, torch's autograd, some sixty launches) takes about a
 kernels below a million Gaussians, so the GPU waits for the host. With ``--cuda-graph`` the step
 (for each of the process's views of the batch: render into slots, the note of its count, the loss,
 the backward pass; then the strategy's statistics, the average over the batch, the guard's records,
-one Adam launch) is captured once under ``torch.cuda.graph``,
+one Adam launch; in a step of one view on one process the SH coefficients' Adam step is taken by
+their adjoint instead, ``FUSE_SH_ADAM``) is captured once under ``torch.cuda.graph``,
 Warp told of the capture, and replayed: per step the host only picks the view and computes Adam's
 rates, writes them into pinned memory and queues two small copies and the replay.
 
@@ -219,6 +220,7 @@ class GraphSteps:
         # slowest process's pace; not in capture_seconds
         self.capture_wait_seconds = 0.0
         self.replays = 0
+        self.fused_replays = 0  # replays whose SH adjoint took the coefficients' Adam step
         self._table = self._rates = self._grads = None
         self._adam_params: list = []  # the parameters of the Adam launch: self._params less the fused ones
         self._sh_step: ShAdamStep | None = None  # the SH coefficients' step, fused into their adjoint
@@ -296,6 +298,7 @@ class GraphSteps:
         for p in self._params:  # Adam wrote through addresses: tell torch, as an in-place op would
             increment_version(p)
         self.replays += 1
+        self.fused_replays += self._sh_step is not None
         return True
 
     # ------------------------------------------------------------------------- capture
@@ -323,7 +326,8 @@ class GraphSteps:
             state = trainer.optimizer.state
             rows = (len(self._adam_params), len(self._adam_params) + 1)
             moments = [(state[p]["exp_avg"], state[p]["exp_avg_sq"]) for p in fused]
-            self._sh_step = ShAdamStep(self._rates, rows, moments[0], moments[1], lookahead.halt)
+            selective = trainer.config.optimizer == "selective"
+            self._sh_step = ShAdamStep(self._rates, rows, moments[0], moments[1], lookahead.halt, selective)
         self._background = background
         self._scale = scale
         self.captures += 1
@@ -417,8 +421,9 @@ class GraphSteps:
         self._adam(visible, lookahead.halt)
 
     def _adam(self, visible: torch.Tensor | None, halt: torch.Tensor) -> None:
-        """One Adam launch over every parameter, through the address table (on the CPU, this
-        step's gradients' table, filled here); nothing while ``halt`` is set."""
+        """One Adam launch over the parameters of the address table, every one but those whose
+        step the SH adjoint took (on the CPU, this step's gradients' table, filled here); nothing
+        while ``halt`` is set."""
         threads = sum(adam_quads(p.numel()) for p in self._adam_params)
         if not self.cuda:  # one operation at a time: this step's gradients
             self._check_gradients()
@@ -431,12 +436,13 @@ class GraphSteps:
 
     def _fused_params(self) -> list:
         """The parameters whose Adam step the SH adjoint applies (``FUSE_SH_ADAM``): the SH
-        coefficients of a step of one view on one process with Adam on every row; else none."""
+        coefficients of a step of one view on one process (under selective Adam on the view's
+        visible Gaussians, the rows the Adam launch's mask selects); else none."""
         trainer = self.trainer
         params = trainer.model.params
         if not (FUSE_SH_ADAM and self.fuses_sh_adam and self.batch == 1 and not trainer.ranks.distributed):
             return []
-        if trainer.config.optimizer == "selective" or "sh_dc" not in params or "sh_rest" not in params:
+        if "sh_dc" not in params or "sh_rest" not in params:
             return []
         return [params["sh_dc"], params["sh_rest"]]
 
@@ -494,7 +500,7 @@ class GraphSteps:
             "capture_seconds": self.capture_seconds,
             "capture_wait_seconds": self.capture_wait_seconds,
             "freed_earlier_graphs": self.freed_graphs,
-            "sh_adam_in_adjoint": bool(self._fused_params()),
+            "sh_adam_in_adjoint_steps": self.fused_replays,
         }
 
 
