@@ -95,6 +95,22 @@ def test_a_graph_training_is_the_one_that_reads_every_count(tiny_scene, tmp_path
 
 
 @CPU_ONLY
+def test_a_loss_that_also_reads_the_sh_coefficients_is_not_fused_silently(tiny_scene, tmp_path, monkeypatch):
+    """The SH coefficients' Adam step in their adjoint sees only the render's gradient: a strategy
+    whose regulariser also reads them would lose its share. The replayed step stops with an error
+    that names them and the switch; with the switch off the same training replays."""
+    import cdcgs.train.graph as graph
+    from cdcgs.train.strategy import ADC
+
+    monkeypatch.setattr(ADC, "regularizer", lambda self, ctx: 1e-3 * ctx.model.params["sh_rest"].square().sum())
+    with pytest.raises(RuntimeError, match=r"gives sh_rest a gradient besides the render's.*FUSE_SH_ADAM = False"):
+        train_briefly(tiny_scene, tmp_path / "fused", "3dgs", SHORT, background="white", cuda_graph=True)
+    monkeypatch.setattr(graph, "FUSE_SH_ADAM", False)
+    _, result = train_briefly(tiny_scene, tmp_path / "launch", "3dgs", SHORT, background="white", cuda_graph=True)
+    assert result["cuda_graph"]["replayed_steps"] > 0 and result["cuda_graph"]["sh_adam_in_adjoint_steps"] == 0
+
+
+@CPU_ONLY
 def test_overflows_in_replayed_steps_are_taken_again(tiny_scene, tmp_path, monkeypatch):
     """Slots of exactly the largest last count: views overflow inside replayed steps, halt, and the
     steps are taken again after the read; the run ends as the counted one."""
