@@ -30,7 +30,11 @@ __all__ = [
     "VALUES_PER_THREAD",
     "AdamStep",
     "adam_quads",
+    "adam_rates",
+    "adam_step_halted",
+    "adam_step_rates",
     "adam_step_value",
+    "adam_step_with",
     "fused_adam_kernel",
     "selective_adam_kernel",
 ]
@@ -133,23 +137,18 @@ class AdamStep:
     row_width: int
 
 
+# An AdamStep's row of the rates table: lr, beta1, beta2, 1 - beta1, 1 - beta2, eps, bias
+# correction 1, sqrt of bias correction 2 (``adam_value``'s arguments after the moments).
+adam_rates = wp.types.vector(length=8, dtype=wp.float32)
+
+
 @wp.func
-def adam_step_value(step: AdamStep, i: int, g: float):
-    """``adam_value`` of value ``i`` of ``step``'s parameter with gradient ``g``, in place, unless
-    its halt flag is set or (selective) its row is not selected."""
-    if step.halt.shape[0] > 0:
-        if step.halt[0] != 0:
-            return
-    if step.radii.shape[0] > 0:
-        radius = step.radii[i // step.row_width]
-        if radius[0] <= 0 or radius[1] <= 0:
-            return
+def adam_step_rates(step: AdamStep):
+    """``step``'s rates, read once. A kernel that steps many values reads them before its loop:
+    inside it they would be read again after every store, which the compiler cannot tell apart
+    from the rates table."""
     r = step.row
-    out = adam_value(
-        step.param[i],
-        g,
-        step.exp_avg[i],
-        step.exp_avg_sq[i],
+    return adam_rates(
         step.rates[r, 0],
         step.rates[r, 1],
         step.rates[r, 2],
@@ -159,9 +158,51 @@ def adam_step_value(step: AdamStep, i: int, g: float):
         step.rates[r, 6],
         step.rates[r, 7],
     )
+
+
+@wp.func
+def adam_step_halted(step: AdamStep) -> int:
+    """1 while ``step``'s halt flag is set (nothing may change), else 0."""
+    if step.halt.shape[0] > 0:
+        if step.halt[0] != 0:
+            return 1
+    return 0
+
+
+@wp.func
+def adam_step_with(step: AdamStep, rates: adam_rates, i: int, g: float):
+    """``adam_value`` of value ``i`` of ``step``'s parameter with gradient ``g`` and ``rates`` (from
+    :func:`adam_step_rates`), in place, unless (selective) its row is not selected. The caller has
+    checked :func:`adam_step_halted`."""
+    if step.radii.shape[0] > 0:
+        radius = step.radii[i // step.row_width]
+        if radius[0] <= 0 or radius[1] <= 0:
+            return
+    out = adam_value(
+        step.param[i],
+        g,
+        step.exp_avg[i],
+        step.exp_avg_sq[i],
+        rates[0],
+        rates[1],
+        rates[2],
+        rates[3],
+        rates[4],
+        rates[5],
+        rates[6],
+        rates[7],
+    )
     step.exp_avg[i] = out[1]
     step.exp_avg_sq[i] = out[2]
     step.param[i] = out[0]
+
+
+@wp.func
+def adam_step_value(step: AdamStep, i: int, g: float):
+    """``adam_value`` of value ``i`` of ``step``'s parameter with gradient ``g``, in place, unless
+    its halt flag is set or (selective) its row is not selected."""
+    if adam_step_halted(step) == 0:
+        adam_step_with(step, adam_step_rates(step), i, g)
 
 
 @wp.func_native(

@@ -13,7 +13,7 @@ import warp as wp
 
 from ._constants import MAX_SH_COEFFICIENTS, SH_C0, SH_C1, SH_C2, SH_C3
 from ._lanes import GROUP_SIZE, block_sync, group_read
-from .adam import AdamStep, adam_step_value
+from .adam import AdamStep, adam_step_halted, adam_step_rates, adam_step_value, adam_step_with
 
 __all__ = [
     "ALPHA_THRESHOLD",
@@ -742,14 +742,18 @@ def sh_to_color_staged_backward_kernel(
                         sh_stage_store_vec3(slot, zero)
             grad_means_out[t] = sh_mean_gradient(v, d, w, sh_degree)
         if stepped:  # after w[0] read the coefficient
-            for c in range(3):
-                adam_step_value(dc_step, 3 * t + c, grad_dc[c])
+            if adam_step_halted(dc_step) == 0:
+                dc_rates = adam_step_rates(dc_step)
+                for c in range(3):
+                    adam_step_with(dc_step, dc_rates, 3 * t + c, grad_dc[c])
         else:
             grad_sh_out[t, 0] = grad_dc
     block_sync()
-    for k in range(start + lane, end, SH_BLOCK):
-        if stepped:
-            adam_step_value(rest_step, k, sh_stage(SH_STAGE_LOAD, k - start, 0.0))
-        else:
+    if not stepped:
+        for k in range(start + lane, end, SH_BLOCK):
             grad_sh_rest_out[k] = sh_stage(SH_STAGE_LOAD, k - start, 0.0)
+    elif adam_step_halted(rest_step) == 0:
+        rates = adam_step_rates(rest_step)  # once a thread, not once a value
+        for k in range(start + lane, end, SH_BLOCK):
+            adam_step_with(rest_step, rates, k, sh_stage(SH_STAGE_LOAD, k - start, 0.0))
     block_sync()  # a capped grid runs a block again: its next copy-in must wait for this copy-out
