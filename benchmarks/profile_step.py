@@ -63,7 +63,7 @@ from cdcgs.train import trainer as trainer_module
 from cdcgs.train.config import DataConfig, TrainConfig
 from cdcgs.train.mcmc import MCMC
 from cdcgs.train.model import GaussianModel
-from cdcgs.train.ops import make_optimizer
+from cdcgs.train.ops import make_optimizer, morton_order
 from cdcgs.train.strategies import strategy_class
 from cdcgs.train.trainer import Trainer
 
@@ -115,14 +115,18 @@ class PartClock:
         return wrapped
 
 
-def resampled(model: GaussianModel, count: int, generator: torch.Generator) -> GaussianModel:
-    """``count`` Gaussians from ``model``: a random subset, or every one plus copies moved by a
-    draw of their own scale (as a split would place them)."""
+def resampled(model: GaussianModel, count: int, generator: torch.Generator, order: str = "drawn") -> GaussianModel:
+    """``count`` Gaussians from ``model``: a random subset (in the order drawn, or with ``order``
+    "kept" in the model's own), or every one plus copies moved by a draw of their own scale (as a
+    split would place them), appended; with ``order`` "morton" sorted by the Morton code of their
+    means (neighbours in space neighbours in memory, as Faster-GS orders them)."""
     params = {k: v.detach() for k, v in model.params.items()}
     n = params["means"].shape[0]
     device = params["means"].device
     if count <= n:
         keep = torch.randperm(n, generator=generator, device=device)[:count]
+        if order == "kept":
+            keep = keep.sort().values
         params = {k: v[keep] for k, v in params.items()}
     else:
         extra = torch.randint(0, n, (count - n,), generator=generator, device=device)
@@ -130,6 +134,9 @@ def resampled(model: GaussianModel, count: int, generator: torch.Generator) -> G
         jitter = torch.randn(count - n, 3, generator=generator, device=device)
         copies["means"] += jitter * params["log_scales"][extra].exp()
         params = {k: torch.cat([v, copies[k]]) for k, v in params.items()}
+    if order == "morton":
+        permutation = morton_order(params["means"])
+        params = {k: v[permutation] for k, v in params.items()}
     params = {k: v.contiguous() for k, v in params.items()}
     return GaussianModel(params, max_sh_degree=model.max_sh_degree, sh_degree=model.max_sh_degree)
 
@@ -154,7 +161,7 @@ def prepared(args, count: int, out: str) -> Trainer:
     trainer._setup()
     generator = torch.Generator(device=trainer.device).manual_seed(0)
     source = GaussianModel.from_ply(read_ply(args.ply), device=trainer.device) if args.ply else trainer.model
-    trainer.model = resampled(source, count, generator)
+    trainer.model = resampled(source, count, generator, getattr(args, "order", "drawn"))
     if args.torch_adam and trainer.config.optimizer == "selective":
         raise SystemExit(f"--torch-adam: the {args.strategy} preset trains with selective Adam, which torch has not")
     # --torch-adam: the optimizer before FusedAdam, torch's fused Adam (one launch per group)
@@ -485,6 +492,12 @@ def main(argv=None) -> int:
         action="store_true",
         help="the step of cdcgs train --cuda-graph (implies --sync-free): replayed steps run no part of the "
         "trainer's Python, so only the plain step's time, the kernels and the host syncs mean something",
+    )
+    parser.add_argument(
+        "--order",
+        choices=("drawn", "kept", "morton"),
+        default="drawn",
+        help="the Gaussians' order in memory: as drawn (random), the model's own, or by Morton code",
     )
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)

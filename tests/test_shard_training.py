@@ -23,8 +23,9 @@ pytestmark = pytest.mark.skipif(
 
 # SCHEDULE (densification at 4 and 8, an opacity reset at 8), with every selected Gaussian cloned:
 # no split draws random numbers, so the slices together must take one process's run. The threshold
-# selects some Gaussians of each slice, not all, so the slices grow apart.
-CLONES = {**SCHEDULE, "clone_max_scale": 1e9, "grad_threshold": 2e-3}
+# selects some Gaussians of each slice, not all, so the slices grow apart. The one-process runs keep
+# the order the slices keep (the grown after the others; --gaussian-order auto sorts one process's).
+CLONES = {**SCHEDULE, "clone_max_scale": 1e9, "grad_threshold": 2e-3, "gaussian_order": "appended"}
 
 
 @pytest.fixture(scope="module")
@@ -288,6 +289,8 @@ def test_refusals_name_the_option():
     assert "relocates" in shard_refusal(config, 2, make_strategy("mcmc", {}))
     assert "--target-gaussians" in shard_refusal(config, 2, make_strategy("3dgs", {"target_gaussians": 100}))
     assert "--budget-schedule" in shard_refusal(config, 2, make_strategy("fast", {}))
+    assert shard_refusal(config, 2, make_strategy("3dgs", {"gaussian_order": "appended"})) is None
+    assert "--gaussian-order morton" in shard_refusal(config, 2, make_strategy("3dgs", {"gaussian_order": "morton"}))
     assert shard_refusal(task_config("s", "o", sync_free=True, cuda_graph=True), 2) is None
     assert "selective" in shard_refusal(task_config("s", "o", optimizer="selective"), 2)
     assert "--dist-exchange" in shard_refusal(task_config("s", "o", dist_exchange="colours"), 2)

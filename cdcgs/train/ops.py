@@ -23,8 +23,10 @@ __all__ = [
     "clone",
     "load_optimizer_state",
     "make_optimizer",
+    "morton_order",
     "relocate",
     "remove",
+    "reorder",
     "reset_opacity",
     "set_hyperparameters",
     "split",
@@ -141,6 +143,43 @@ def remove(model: GaussianModel, optimizer: torch.optim.Optimizer, mask: torch.T
     """Remove (prune) the Gaussians where ``mask`` [N] is True, with their Adam moments."""
     keep = ~mask
     _update(model, optimizer, lambda name, p: p[keep], lambda name, m: m[keep])
+
+
+def reorder(model: GaussianModel, optimizer: torch.optim.Optimizer, order: torch.Tensor) -> None:
+    """Put the Gaussians in ``order`` (a permutation of 0..N-1: the new row i is the old row
+    ``order[i]``), with their Adam moments."""
+    _update(model, optimizer, lambda name, p: p[order], lambda name, m: m[order])
+
+
+MORTON_BITS = 21  # a cell's coordinate on each axis: 3 x 21 bits fill an int64
+
+
+def _spread_bits(x: torch.Tensor) -> torch.Tensor:
+    """The MORTON_BITS low bits of ``x`` (int64), two zero bits between each."""
+    x = x & ((1 << MORTON_BITS) - 1)
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
+        x = (x | (x << shift)) & mask
+    return x
+
+
+def morton_order(means: torch.Tensor) -> torch.Tensor:
+    """The permutation that sorts ``means`` [N, 3] by the Morton (Z-order) code of their cell in a
+    grid of 2^21 cells a side over their bounding box, ties (a clone and its parent share a cell) in
+    their order: Gaussians near in space end up near in memory. A non-finite coordinate counts as 0."""
+    means = torch.nan_to_num(means.detach().float(), nan=0.0, posinf=0.0, neginf=0.0)
+    if means.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.long, device=means.device)
+    low, high = means.min(0).values, means.max(0).values
+    top = (1 << MORTON_BITS) - 1
+    cells = ((means - low) / (high - low).clamp_min(1e-30) * top).long().clamp(0, top)
+    codes = _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << 1) | (_spread_bits(cells[:, 2]) << 2)
+    return torch.sort(codes, stable=True).indices
 
 
 def clone(model: GaussianModel, optimizer: torch.optim.Optimizer, mask: torch.Tensor) -> None:

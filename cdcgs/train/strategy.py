@@ -248,6 +248,14 @@ class ADC(StrategyOptions):
         low=1,
     )
 
+    gaussian_order: str = strategy_option(
+        "auto",
+        "the Gaussians' order in memory after each densification step: morton (sorted by the Morton code of their "
+        "means, so that neighbours in space are neighbours in memory: a faster step), appended (the grown after "
+        "the others, as 3DGS), or auto (morton, except on --dist-mode shards, whose slices keep the scene's order)",
+        choices=("auto", "morton", "appended"),
+    )
+
     # The training options a run leaves at none: the CDC-GS code's (3DGS's, with the opacity
     # learning rate of the current INRIA code and CDC-GS's geometric-mean initial scales).
     training_defaults: ClassVar[dict] = {
@@ -455,10 +463,10 @@ class ADC(StrategyOptions):
         prune_after: Callable[[GaussianModel], torch.Tensor] | None = None,
     ) -> dict:
         """Clone, split, then prune by the rule, plus ``prune_extra`` [N] over the Gaussians before
-        growth and ``prune_after(model)`` over those after it (newborns included); reset the
-        statistics. New Gaussians are judged like 3DGS judges them: by their opacity and world
-        size, with no screen size yet. At the last densification step ``target_gaussians`` is
-        landed on (:meth:`land_on_target`)."""
+        growth and ``prune_after(model)`` over those after it (newborns included); put the Gaussians
+        in ``gaussian_order``; reset the statistics. New Gaussians are judged like 3DGS judges them:
+        by their opacity and world size, with no screen size yet. At the last densification step
+        ``target_gaussians`` is landed on (:meth:`land_on_target`)."""
         model, optimizer = ctx.model, ctx.optimizer
         score = self.mean_gradient(state)  # of the Gaussians before growth, for landing on the target
         grown = clone | split
@@ -489,8 +497,10 @@ class ADC(StrategyOptions):
         log = {"cloned": n_clone, "split": n_split, "pruned": n_prune}
         if self.target_gaussians is not None and ctx.step == self.last_densification():
             log.update(self.land_on_target(ctx, after))
+        if self.gaussian_order == "morton" or (self.gaussian_order == "auto" and ctx.whole_scene is None):
+            ops.reorder(model, optimizer, ops.morton_order(model.params["means"]))
         kept_state = {key: state[key] for key in ("budget_initial", "budget_momentum") if key in state}
-        state.update(self.initialize_state(model))
+        state.update(self.initialize_state(model))  # the statistics start again: nothing to reorder
         state.update(kept_state)  # the budget's, which lasts the run
         if self.budget_schedule == "dash":
             log["budget_bound"] = self.budget_bound(state)
