@@ -193,7 +193,6 @@ def train(
     perturb_at=None,
     tight_slots=False,
     viewer_on_rank_0=False,
-    round_block=None,
     **overrides,
 ):
     """A whole run; the parameters' checksums after every step, the final parameters, and the
@@ -202,8 +201,7 @@ def train(
     ``tight_slots``: with --sync-free, slots of exactly the last count, so that renders of grown
     Gaussians overflow and the run goes back; ``viewer_on_rank_0``: the steps replayed by default on
     the CPU too (as on CUDA), and rank 0 alone given a callback that renders beside the training
-    (as the viewer is), which refuses them there; ``round_block``: --dist-balance rounds' blocks of
-    that many rounds."""
+    (as the viewer is), which refuses them there."""
     import torch
 
     from cdcgs.train import lookahead, outputs
@@ -276,30 +274,6 @@ def train(
         return real_close(self, *args, **kwargs)
 
     Ranks.close = close
-    # (first iteration, views) of every step taken, and (drawn order, costs, arranged order) of
-    # every epoch order --dist-balance rounds arranged
-    steps, epochs = [], []
-    real_start = Trainer._start_step
-
-    def start_step(self, first, last):
-        views, backgrounds = real_start(self, first, last)
-        steps.append((first, list(views)))
-        return views, backgrounds
-
-    real_rounds = trainer_module.rounds_order
-
-    def rounds_order(order, costs, *args):
-        arranged = real_rounds(order, costs, *args)
-        epochs.append((list(order), list(costs), list(arranged)))
-        return arranged
-
-    patched += [(Trainer, "_start_step", real_start), (trainer_module, "rounds_order", real_rounds)]
-    Trainer._start_step, trainer_module.rounds_order = start_step, rounds_order
-    if round_block is not None:
-        from cdcgs.train import distributed
-
-        patched.append((distributed, "ROUND_BLOCK", distributed.ROUND_BLOCK))
-        distributed.ROUND_BLOCK = round_block
     trainers = []
     if tight_slots:
         patched += [(lookahead, "MARGIN", lookahead.MARGIN), (lookahead, "FLOOR", lookahead.FLOOR)]
@@ -348,8 +322,6 @@ def train(
         "cuda_graph": result.get("cuda_graph"),
         "dist_balance": result.get("dist_balance"),
         "splits": splits,
-        "steps": steps,
-        "epochs": epochs,
         "test": result["test"],
         "events": list(trainer.history["strategy"]),
     }
@@ -527,22 +499,3 @@ def sharded_scene(n, views, seed, width, height, sh_degree):
         cameras.append(prepare_camera(w2c, K, width, height))
     weights = [torch.rand(height, width, 3, generator=g) for _ in range(views)]
     return [means, quats, scales, opacities, sh], cameras, weights
-
-
-def assert_rounds_follow_the_counts(result: dict, world: int, epochs: int) -> None:
-    """A run of --dist-balance rounds with blocks of one round: ``epochs`` epoch orders arranged
-    (all its last ones), each round of each of views adjacent in the order of the counts it was
-    arranged by (ties in the drawn order), and the run's last steps rendering those orders in turn."""
-    assert result["dist_balance"]["balanced_epochs"] == len(result["epochs"]) == epochs
-    assert result["sync_free"]["rewinds"] == 0  # else steps and orders were taken again
-    arranged_views = []
-    for order, costs, arranged in result["epochs"]:
-        assert sorted(arranged) == sorted(order)
-        assert len(set(costs)) > 1, "the counts do not tell the views apart"
-        ranked = sorted(order, key=lambda view: costs[view])
-        for i in range(0, len(arranged) - len(arranged) % world, world):
-            places = sorted(ranked.index(view) for view in arranged[i : i + world])
-            assert places[0] % world == 0 and places == list(range(places[0], places[0] + world)), (places, costs)
-        arranged_views += arranged
-    taken = [view for _, views in result["steps"] for view in views]
-    assert taken[len(taken) - len(arranged_views) :] == arranged_views

@@ -9,30 +9,14 @@ import sys
 
 import pytest
 import torch
-from dist_tasks import (
-    SCHEDULE,
-    assert_rounds_follow_the_counts,
-    first_step_gradients,
-    ok,
-    run_here,
-    run_ranks,
-    task_config,
-)
+from dist_tasks import SCHEDULE, first_step_gradients, ok, run_here, run_ranks, task_config
 from helpers import hand_model
 
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.errors import OptionError
-from cdcgs.train import distributed, ops
+from cdcgs.train import ops
 from cdcgs.train.config import LearningRates, TrainConfig, batch_rule
-from cdcgs.train.distributed import (
-    ROUND_BLOCK,
-    balanced_positions,
-    choose_backend,
-    my_positions,
-    rounds_order,
-    splits_by_counts,
-    step_seed,
-)
+from cdcgs.train.distributed import balanced_positions, choose_backend, my_positions, splits_by_counts, step_seed
 from cdcgs.train.trainer import Trainer, crossed
 
 pytestmark = pytest.mark.skipif(
@@ -393,7 +377,7 @@ def test_views_split_by_their_counts_are_the_batch_of_one_process(small_scene, t
     )
     one = ok([one])[0]
     assert "--dist-balance counts: one process; the views split by position" in capsys.readouterr().out
-    assert one["dist_balance"] == {"mode": "counts", "balanced_steps": 0, "balanced_epochs": 0}
+    assert one["dist_balance"] == {"mode": "counts", "balanced_steps": 0}
     for r0, r1 in runs.values():
         assert r0["checksums"] == r1["checksums"]
         assert r0["dist_balance"]["balanced_steps"] == r1["dist_balance"]["balanced_steps"] > 0
@@ -435,6 +419,15 @@ def test_the_split_by_counts_pairs_the_costliest_with_the_cheapest():
     splits); ties by position; a batch the processes do not divide is refused."""
     import random
 
+    def pairings(items):  # every split of ``items`` into pairs
+        if not items:
+            yield []
+            return
+        first, rest = items[0], items[1:]
+        for k, partner in enumerate(rest):
+            for others in pairings(rest[:k] + rest[k + 1 :]):
+                yield [(first, partner), *others]
+
     rng = random.Random(3)
     for world, share in ((2, 2), (2, 3), (3, 2), (4, 2), (2, 5)):
         batch = world * share
@@ -459,140 +452,6 @@ def test_the_split_by_counts_pairs_the_costliest_with_the_cheapest():
     # what --dist-balance counts splits: a multiple of the processes, two views or more each
     assert [splits_by_counts(count, 2) for count in (2, 3, 4, 5, 6)] == [False, False, True, False, True]
     assert [splits_by_counts(count, 3) for count in (3, 6, 8, 9)] == [False, True, False, True]
-
-
-def idle(order: list[int], costs, world: int) -> float:
-    """What the processes of the rounds of ``order`` (consecutive groups of ``world``) wait for
-    their round's costliest view, summed: world x its cost - the round's costs."""
-    rounds = [order[i : i + world] for i in range(0, len(order), world)]
-    return sum(world * max(costs[v] for v in r) - sum(costs[v] for v in r) for r in rounds if len(r) == world)
-
-
-def test_rounds_order_puts_views_of_close_cost_side_by_side(monkeypatch):
-    """rounds_order: every view once; the first views complete the round the last epoch began;
-    each other whole round holds views of one block of ROUND_BLOCK rounds of the cost order (ties in
-    the drawn order); a round the epoch leaves short comes last; the same generator state, the same
-    order; another one pairs the views otherwise; the rounds leave the processes far less idle
-    than the drawn order's, and with blocks of one round the least idle of any pairing (brute
-    force)."""
-    import random
-
-    rng = random.Random(5)
-    for world in (2, 3, 4):
-        for drawn in range(world + 1):
-            for views in (1, 7, 29, 200):
-                costs = [rng.randint(1, 10_000) for _ in range(views)]
-                order = rng.sample(range(views), views)
-                arranged = rounds_order(order, costs, world, drawn, torch.Generator().manual_seed(views))
-                assert sorted(arranged) == list(range(views))
-                head = min((world - drawn % world) % world, views)
-                assert arranged[:head] == order[:head]
-                ranked = sorted(order[head:], key=lambda v: costs[v])  # stable: ties in the drawn order
-                block = {v: ranked.index(v) // (world * ROUND_BLOCK) for v in ranked}
-                rest = arranged[head:]
-                rounds = [rest[i : i + world] for i in range(0, len(rest), world)]
-                for r in rounds:
-                    assert len({block[v] for v in r}) == 1, (r, costs)
-                assert all(len(r) == world for r in rounds[:-1])
-                again = rounds_order(order, costs, world, drawn, torch.Generator().manual_seed(views))
-                assert again == arranged
-                if len(rest) >= 8 * world * ROUND_BLOCK:  # eight blocks or more
-                    assert idle(rest, costs, world) < 0.25 * idle(order[head:], costs, world)
-    # blocks of one round: the least idle pairing of all (brute force over every pairing)
-    monkeypatch.setattr(distributed, "ROUND_BLOCK", 1)
-    costs = [9, 1, 4, 7, 3, 8, 2, 6]
-    pairs = rounds_order(list(range(8)), costs, 2, 0, torch.Generator().manual_seed(0))
-    assert sorted(sorted(costs[v] for v in pairs[i : i + 2]) for i in range(0, 8, 2)) == [
-        [1, 2],
-        [3, 4],
-        [6, 7],
-        [8, 9],
-    ]
-    for _ in range(20):
-        costs = [rng.randint(1, 100) for _ in range(8)]
-        pairs = rounds_order(list(range(8)), costs, 2, 0, torch.Generator())
-        best = min(sum(abs(costs[a] - costs[b]) for a, b in p) for p in pairings(list(range(8))))
-        assert idle(pairs, costs, 2) == best
-    monkeypatch.undo()
-    orders = {
-        tuple(rounds_order(list(range(40)), list(range(40)), 2, 0, torch.Generator().manual_seed(s))) for s in range(4)
-    }
-    assert len(orders) == 4  # the pairings and the rounds' order change with the draws
-    with pytest.raises(ValueError, match="twice"):
-        rounds_order([0, 1, 1], [1, 2, 3], 2)
-    with pytest.raises(ValueError, match="world"):
-        rounds_order([0, 1], [1, 2], 0)
-
-
-def test_an_epoch_that_ends_inside_a_round_is_completed_by_the_next(monkeypatch):
-    """Trainer's view queue under --dist-balance rounds with 7 views and steps of 2 on two
-    processes: an epoch ends inside a round every second epoch; the next epoch's first view
-    completes that round, and every step inside an epoch renders two views adjacent in the counts'
-    order (blocks of one round)."""
-    from types import SimpleNamespace
-
-    monkeypatch.setattr(distributed, "ROUND_BLOCK", 1)
-    costs = [50, 10, 70, 30, 60, 20, 40]
-    counts = SimpleNamespace(expected=lambda view, gaussians, scale, agreed: costs[view] if agreed else None)
-    trainer = SimpleNamespace(
-        view_queue=[],
-        view_generator=torch.Generator().manual_seed(1),
-        config=SimpleNamespace(dist_balance="rounds"),
-        lookahead=counts,
-        num_gaussians=100,
-        step=0,
-        balanced_epochs=0,
-        ranks=SimpleNamespace(world=2),
-        scene=SimpleNamespace(train=[None] * 7),
-        _balance_refusal=lambda: None,
-        _downscale=lambda step: 1,
-    )
-    trainer._epoch_order = lambda drawn: Trainer._epoch_order(trainer, drawn)
-    steps = []
-    for _ in range(14):  # four epochs
-        views = []
-        for _ in range(2):
-            views.append(Trainer._next_view(trainer, len(views)))
-        steps.append(views)
-    assert trainer.balanced_epochs == 4
-    drawn = [view for views in steps for view in views]
-    epochs = [drawn[i : i + 7] for i in range(0, 28, 7)]
-    assert all(sorted(epoch) == list(range(7)) for epoch in epochs)
-    ranked = sorted(range(7), key=lambda view: costs[view])
-    straddling = 0
-    for k, views in enumerate(steps):
-        if k * 2 // 7 != (k * 2 + 1) // 7:  # the step's views from two epochs
-            straddling += 1
-            continue
-        places = sorted(ranked.index(view) for view in views)
-        assert places[1] == places[0] + 1, (k, views)
-    assert straddling == 2
-
-
-def pairings(items):
-    """Every split of ``items`` into pairs."""
-    if not items:
-        yield []
-        return
-    first, rest = items[0], items[1:]
-    for k, partner in enumerate(rest):
-        for others in pairings(rest[:k] + rest[k + 1 :]):
-            yield [(first, partner), *others]
-
-
-def test_rounds_in_data_parallelism(small_scene, tmp_path, capsys):
-    """--dist-balance rounds, data parallel, blocks of one round: the first epoch is in random order
-    (no counts agreed before the first read), every later one arranged by the agreed counts, the
-    same on both processes, which hold the same parameters; one process has nothing to balance and
-    says so."""
-    common = dict(scene=small_scene, iters=24, batch_size=2, sync_free=True, log_every=4, dist_balance="rounds")
-    r0, r1 = ok(run_ranks("train", 2, tmp_path, out=tmp_path / "two", round_block=1, **common))
-    assert r0["checksums"] == r1["checksums"] and r0["epochs"] == r1["epochs"]
-    assert_rounds_follow_the_counts(r0, 2, epochs=3)
-    capsys.readouterr()
-    one = ok([run_here("train", out=tmp_path / "one", **common)])[0]
-    assert "--dist-balance rounds: one process; the views in random order" in capsys.readouterr().out
-    assert one["dist_balance"]["balanced_epochs"] == 0 and one["epochs"] == []
 
 
 def test_a_batch_smaller_than_the_processes_is_refused(small_scene, tmp_path):

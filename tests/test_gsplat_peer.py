@@ -142,7 +142,6 @@ def test_sh_degree_schedule():
 def test_view_order_is_our_trainers():
     trainer = Trainer.__new__(Trainer)  # only what _next_view reads
     trainer.view_queue, trainer.scene = [], types.SimpleNamespace(train=[None] * 11)
-    trainer.config = types.SimpleNamespace(dist_balance="none")
     trainer.view_generator = torch.Generator().manual_seed(7 + 1)
     order = peer.view_order(11, seed=7)
     assert [next(order) for _ in range(40)] == [trainer._next_view() for _ in range(40)]

@@ -7,7 +7,7 @@ import os
 
 import pytest
 import torch
-from dist_tasks import SCHEDULE, assert_rounds_follow_the_counts, ok, run_here, run_ranks, task_config
+from dist_tasks import SCHEDULE, ok, run_here, run_ranks, task_config
 
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.errors import OptionError
@@ -258,19 +258,6 @@ def test_replayed_sharded_steps_are_the_eager_ones(scene, tmp_path):
     assert runs["replayed"][0]["cuda_graph"]["replayed_steps"] == runs["replayed"][1]["cuda_graph"]["replayed_steps"]
 
 
-def test_rounds_pair_the_views_by_their_counts(scene, tmp_path):
-    """--dist-balance rounds on two slices, blocks of one round: each epoch's order is arranged by the
-    counts both processes agreed at the set-up's binning and at the reads (the same orders on both:
-    the processes also compare their view queues every 8 iterations), and each step renders two
-    views adjacent in the counts' order."""
-    common = dict(scene=scene, iters=24, dist_mode="shards", timeout=120.0, sync_free=True, check_ranks_every=8)
-    two = run_ranks("train", 2, tmp_path, out=tmp_path / "two", dist_balance="rounds", round_block=1, **common)
-    r0, r1 = ok(two)
-    assert r0["steps"] == r1["steps"] and r0["epochs"] == r1["epochs"]
-    assert_rounds_follow_the_counts(r0, 2, epochs=4)  # 6 training views, 24 iterations: four epochs
-    assert r1["dist_balance"] == r0["dist_balance"]
-
-
 @pytest.mark.skipif(
     not torch.cuda.is_available() or torch.cuda.device_count() < 2 or not torch.distributed.is_nccl_available(),
     reason="needs two GPUs and NCCL",
@@ -307,8 +294,6 @@ def test_refusals_name_the_option():
     assert shard_refusal(task_config("s", "o", sync_free=True, cuda_graph=True), 2) is None
     assert "selective" in shard_refusal(task_config("s", "o", optimizer="selective"), 2)
     assert "--dist-exchange" in shard_refusal(task_config("s", "o", dist_exchange="colours"), 2)
-    assert "--dist-balance counts" in shard_refusal(task_config("s", "o", dist_balance="counts"), 2)
-    assert shard_refusal(task_config("s", "o", dist_balance="rounds"), 2) is None
     assert "--resolution-schedule" in shard_refusal(task_config("s", "o", resolution_schedule="dash"), 2)
 
 

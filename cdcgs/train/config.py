@@ -233,8 +233,8 @@ class TrainConfig:
     )
     dist_balance: str = option(
         "none",
-        "which process renders which views of a step in a torchrun launch: none (positions rank, rank + processes, ...), counts (the views split by their last intersection counts, the costliest first to the least loaded process, so that the processes reach the all-reduce together; where every view of the step has a count that all processes know, with --sync-free or the replayed steps, and at least two views per process; the same views and gradients, summed in another order; not with --dist-exchange colours or --dist-mode shards) or rounds (each epoch's view order arranged so that the views rendered side by side, one per process, have close counts: the views sorted by count, shuffled within blocks of four rounds, the rounds in random order; every view still once an epoch; where every view has a count that all processes know; data parallelism and shards)",
-        choices=("none", "counts", "rounds"),
+        "which process renders which views of a step in a torchrun launch: none (positions rank, rank + processes, ...) or counts (the views split by their last intersection counts, the costliest first to the least loaded process, so that the processes reach the all-reduce together; where every view of the step has a count that all processes know, with --sync-free or the replayed steps, and at least two views per process; the same views and gradients, summed in another order; not with --dist-exchange colours)",
+        choices=("none", "counts"),
     )
     dist_timeout: float = option(
         600.0,

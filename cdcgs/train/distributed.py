@@ -35,7 +35,6 @@ __all__ = [
     "choose_backend",
     "my_positions",
     "rank_device",
-    "rounds_order",
     "step_seed",
 ]
 
@@ -93,43 +92,6 @@ def balanced_positions(costs: list, rank: int, world: int, turn: int = 0) -> lis
         taken[owner].append(position)
         loads[owner] += costs[position]
     return sorted(taken[rank])
-
-
-# --dist-balance rounds: an epoch's views sorted by cost are shuffled within blocks of this many
-# rounds, so that the rounds' pairings change from epoch to epoch while their views stay close in cost.
-ROUND_BLOCK = 4
-
-
-def rounds_order(
-    order: list[int], costs, world: int, drawn: int = 0, generator: torch.Generator | None = None
-) -> list[int]:
-    """An epoch's views (``order``: in the order they are drawn) arranged for ``--dist-balance
-    rounds``, so that the ``world`` views of each round (one per process) cost nearly the same
-    (``costs[view]``, e.g. the view's expected intersection count): a round's processes wait for
-    its costliest view, so a round of unequal views leaves the others idle.
-
-    ``drawn``: views of the current round drawn before this epoch (from the last one); the first
-    ``world - drawn % world`` views of ``order`` complete that round as they are. The others are
-    sorted by cost (ties keep ``order``), cut into blocks of :data:`ROUND_BLOCK` rounds, each block's
-    views shuffled into its rounds, and the whole rounds put in random order (``generator``'s draws,
-    the same on every process); a round the epoch leaves short comes last, for the next epoch to
-    complete. Every view of ``order`` once, as an epoch of random order gives them."""
-    if world < 1:
-        raise ValueError(f"world must be at least 1, got {world}")
-    if sorted(order) != sorted(set(order)):
-        raise ValueError(f"order holds a view twice: {order!r}")
-    head = (world - drawn % world) % world
-    first, rest = list(order[:head]), sorted(order[head:], key=lambda view: costs[view])
-    size = world * ROUND_BLOCK
-    rounds: list[list[int]] = []
-    for start in range(0, len(rest), size):
-        block = rest[start : start + size]
-        block = [block[i] for i in torch.randperm(len(block), generator=generator).tolist()]
-        rounds += [block[i : i + world] for i in range(0, len(block), world)]
-    short = [r for r in rounds if len(r) < world]
-    whole = [r for r in rounds if len(r) == world]
-    shuffled = [whole[i] for i in torch.randperm(len(whole), generator=generator).tolist()]
-    return first + [view for each in (*shuffled, *short) for view in each]
 
 
 def _environment() -> tuple[int, int, int, int]:

@@ -105,21 +105,12 @@ class Lookahead:
         """Slots for ``view`` rendered at 1/``scale`` with ``gaussians`` Gaussians, or None: read
         the count (never rendered at this scale, or more slots than a render takes). ``agreed``:
         from the counts every process knows alike (:meth:`merge`), not this process's own."""
-        expected = self.expected(view, gaussians, scale, agreed)
-        if expected is None:
-            return None
-        slots = math.ceil(expected * MARGIN) + FLOOR
-        return slots if slots <= MAX_CAPACITY else None
-
-    def expected(self, view: int, gaussians: int, scale: int = 1, agreed: bool = False) -> float | None:
-        """The count of (tile, Gaussian) pairs ``view`` is expected to have at 1/``scale`` with
-        ``gaussians`` Gaussians (its last count, grown with the Gaussians since), or None where no
-        count at this scale is known. ``agreed`` as in :meth:`capacity`."""
         known = (self._agreed if agreed else self._known).get(view)
         if known is None or known[2] != scale:
             return None
         count, then, _, _ = known
-        return count * max(1.0, gaussians / max(then, 1))
+        slots = math.ceil(count * max(1.0, gaussians / max(then, 1)) * MARGIN) + FLOOR
+        return slots if slots <= MAX_CAPACITY else None
 
     def prime(self, counts: list[int], gaussians: int, scale: int = 1, iteration: int = 0) -> None:
         """Every view's count (``counts[view]``) of a binning of ``gaussians`` Gaussians at 1/``scale``

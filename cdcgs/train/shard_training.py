@@ -96,10 +96,10 @@ def shard_refusal(config: TrainConfig, world: int, strategy=None) -> str | None:
         return "--optimizer selective is not built for --dist-mode shards: use adam or torch-adam"
     if config.resolution_schedule not in (None, "none"):
         return f"--resolution-schedule {config.resolution_schedule} is not built for --dist-mode shards yet: use none"
-    if config.dist_exchange != "gradients" or config.dist_balance == "counts":
+    if config.dist_exchange != "gradients" or config.dist_balance != "none":
         return (
-            "--dist-exchange and --dist-balance counts are data parallelism's: --dist-mode shards exchanges the "
-            "projected slices, one view per process a round (--dist-balance rounds pairs the views by their counts)"
+            "--dist-exchange and --dist-balance are data parallelism's: --dist-mode shards exchanges the projected "
+            "slices"
         )
     if strategy is None:
         return None

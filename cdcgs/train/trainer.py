@@ -35,7 +35,6 @@ from .distributed import (
     balanced_positions,
     my_positions,
     rank_device,
-    rounds_order,
     splits_by_counts,
     step_seed,
 )
@@ -263,7 +262,6 @@ class Trainer:
         self.gamma_groups: GammaGroups | None = None  # the Γ passes' groups of views, with the graphs
         self.graph_off: str | None = None  # why the steps are not replayed as CUDA graphs
         self.balanced_steps = 0  # steps whose views the processes split by their counts (--dist-balance counts)
-        self.balanced_epochs = 0  # epochs whose view order was arranged by the views' counts (--dist-balance rounds)
         self._snapshots: dict[int, dict] = {}  # --sync-free: iteration -> what the host needs to take it again
 
     # ----------------------------------------------------------------------------- set-up
@@ -459,30 +457,11 @@ class Trainer:
 
     # ------------------------------------------------------------------------------ pieces
 
-    def _next_view(self, drawn: int = 0) -> int:
-        """Views in a fresh random order each epoch (3DGS); with ``--dist-balance rounds`` the
-        epoch's order is arranged by the views' counts (:meth:`_epoch_order`). ``drawn``: the views
-        of the step drawn before this one."""
+    def _next_view(self) -> int:
+        """Views in a fresh random order each epoch (3DGS)."""
         if not self.view_queue:
-            self.view_queue = self._epoch_order(drawn)
+            self.view_queue = torch.randperm(len(self.scene.train), generator=self.view_generator).tolist()
         return self.view_queue.pop()
-
-    def _epoch_order(self, drawn: int) -> list[int]:
-        """A new epoch's view order, as a queue (the next view last): a random permutation, or with
-        ``--dist-balance rounds`` on several processes, where every training view has a count that
-        every process knows alike, that permutation arranged so that each round's views (one per
-        process) have close counts (:func:`cdcgs.train.distributed.rounds_order`; ``drawn`` views
-        of the step's current round came from the last epoch)."""
-        queue = torch.randperm(len(self.scene.train), generator=self.view_generator).tolist()
-        if self.config.dist_balance != "rounds" or self._balance_refusal() is not None:
-            return queue
-        scale = self._downscale(self.step + 1)
-        costs = [self.lookahead.expected(v, self.num_gaussians, scale, agreed=True) for v in range(len(queue))]
-        if any(cost is None for cost in costs):
-            return queue
-        self.balanced_epochs += 1
-        order = rounds_order(queue[::-1], costs, self.ranks.world, drawn, self.view_generator)
-        return order[::-1]
 
     def _step_background(self) -> torch.Tensor:
         if self.config.background == "random":
@@ -839,9 +818,7 @@ class Trainer:
         for iteration in range(first, last + 1):
             if iteration % config.sh_every == 0 and self.model.sh_degree < self.model.max_sh_degree:
                 self.model.sh_degree += 1
-        views = []
-        for _ in range(last - first + 1):
-            views.append(self._next_view(len(views)))
+        views = [self._next_view() for _ in range(last - first + 1)]
         self.generator.manual_seed(step_seed(config.seed, first))
         return views, [self._step_background() for _ in views]
 
@@ -1050,14 +1027,14 @@ class Trainer:
         return photometric_loss(image, target, config.ssim_weight), psnr(image.detach(), target)
 
     def _balance_refusal(self) -> str | None:
-        """Why ``--dist-balance`` (counts, or rounds) cannot balance any step of this run, or None."""
+        """Why ``--dist-balance counts`` cannot split any step of this run, or None."""
         world, batch = self.ranks.world, self.config.batch_size
         if world < 2:
             return "one process"
-        if self.config.dist_balance == "counts" and not splits_by_counts(batch, world):
+        if not splits_by_counts(batch, world):
             return f"--batch-size {batch} is not two views or more for each of {world} processes"
         if self.lookahead is None:
-            return f"no counts to balance by (--sync-free or the replayed steps give them; {self.graph_off})"
+            return f"no counts to split by (--sync-free or the replayed steps give them; {self.graph_off})"
         return None
 
     def positions(self, first: int, views: list[int]) -> list[int]:
@@ -1263,12 +1240,10 @@ class Trainer:
         if self.ranks.distributed:  # after the verdict: a collective inside the set-up could meet a failed one
             self._agree_on_lpips()
             self._agree_on_graphs()
-        if self.ranks.is_main and self.config.dist_balance != "none":
+        if self.ranks.is_main and self.config.dist_balance == "counts":
             why = self._balance_refusal()
             if why is not None:
-                balance = self.config.dist_balance
-                then = "the views split by position" if balance == "counts" else "the views in random order"
-                print(f"--dist-balance {balance}: {why}; {then}")
+                print(f"--dist-balance counts: {why}; the views split by position")
         try:  # agreed on too: a failed write stops every process with its cause, not by a timeout
             if self.ranks.is_main:
                 outputs.write_json(os.path.join(self.out, outputs.CONFIG), self._config_json)
@@ -1438,11 +1413,7 @@ class Trainer:
             result["cuda_graph"] = {"off": self.graph_off}
         result.update(self._result_extras())
         if self.config.dist_balance != "none":
-            result["dist_balance"] = {
-                "mode": self.config.dist_balance,
-                "balanced_steps": self.balanced_steps,
-                "balanced_epochs": self.balanced_epochs,
-            }
+            result["dist_balance"] = {"mode": self.config.dist_balance, "balanced_steps": self.balanced_steps}
         if self.ranks.distributed:
             # every process's, since the wait differs: the slower one waits less
             summaries = self.ranks.all_gather_object(self._communication_summary())
