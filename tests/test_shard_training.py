@@ -12,6 +12,7 @@ from dist_tasks import SCHEDULE, ok, run_here, run_ranks, task_config
 from cdcgs.datasets.procedural import make_procedural_scene
 from cdcgs.errors import OptionError
 from cdcgs.io import load_checkpoint, read_ply
+from cdcgs.train.ops import morton_order
 from cdcgs.train.shard_training import ShardedTrainer, even_rows, shard_refusal
 from cdcgs.train.strategies import make_strategy
 from cdcgs.train.trainer import Trainer
@@ -140,15 +141,16 @@ def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path, strate
     Gaussians to draw); ``cdc`` with the sharded steps replayed (on the CPU the same body, one
     operation at a time) and its Γ pass measured in groups of views from the gathered scene
     (GammaGroups). To its first densification (at 4) the same candidates, draws, correlations and
-    Gaussians as one process with every Gaussian. (After it the whole scene's order differs, each
-    slice's clones after its own Gaussians, so the same draws pick other Gaussians, alike in
-    number.)"""
-    options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1}
+    Gaussians as one process with every Gaussian; there each slice is sorted in Morton order, as one
+    process sorts the whole scene (--gaussian-order auto: checked where the densification ends the
+    run; the replayed run takes two steps more, its first being eager)."""
+    options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1, "gaussian_order": "auto"}
     replayed = {}
     if strategy == "cdc":
         options.update(tau_low=1.5e-3, tau_up=2.5e-3)
         replayed = {"cuda_graph": True}
-    common = dict(scene=scene, strategy=strategy, options=options, checkpoint_every=0, batch_size=2, iters=6)
+    iters = 6 if replayed else 4
+    common = dict(scene=scene, strategy=strategy, options=options, checkpoint_every=0, batch_size=2, iters=iters)
     two = run_ranks("train", 2, tmp_path, timeout=120.0, out=tmp_path / "two", dist_mode="shards", **common, **replayed)
     r0, r1 = ok(two)
     for mine in (r0, r1) if replayed else ():  # each process measured its views in groups
@@ -164,6 +166,13 @@ def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path, strate
     assert sum(e["cdc_densify"] for e in one["events"]) > 0 and sum(e["cdc_prune"] for e in one["events"]) > 0
     sharded, whole = (load_checkpoint(str(tmp_path / n / "checkpoint.pt"), map_location="cpu") for n in ("two", "one"))
     assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+    means, rows = sharded["model"]["params"]["means"], sharded["rows"]
+    assert sum(rows) == means.shape[0] and min(rows) > 0
+    if iters > 4:
+        return
+    for piece in (*means.split(rows), whole["model"]["params"]["means"]):
+        assert torch.equal(morton_order(piece), torch.arange(piece.shape[0])), "not in Morton order"
+    assert not torch.equal(morton_order(means), torch.arange(means.shape[0])), "the slices are sorted apart"
 
 
 def test_a_sharded_run_stopped_by_a_signal_resumes_sharded(scene, tmp_path):
@@ -289,8 +298,8 @@ def test_refusals_name_the_option():
     assert "relocates" in shard_refusal(config, 2, make_strategy("mcmc", {}))
     assert "--target-gaussians" in shard_refusal(config, 2, make_strategy("3dgs", {"target_gaussians": 100}))
     assert "--budget-schedule" in shard_refusal(config, 2, make_strategy("fast", {}))
-    assert shard_refusal(config, 2, make_strategy("3dgs", {"gaussian_order": "appended"})) is None
-    assert "--gaussian-order morton" in shard_refusal(config, 2, make_strategy("3dgs", {"gaussian_order": "morton"}))
+    for order in ("appended", "morton", "auto"):  # each process sorts its own slice
+        assert shard_refusal(config, 2, make_strategy("3dgs", {"gaussian_order": order})) is None
     assert shard_refusal(task_config("s", "o", sync_free=True, cuda_graph=True), 2) is None
     assert "selective" in shard_refusal(task_config("s", "o", optimizer="selective"), 2)
     assert "--dist-exchange" in shard_refusal(task_config("s", "o", dist_exchange="colours"), 2)

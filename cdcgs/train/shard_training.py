@@ -114,11 +114,6 @@ def shard_refusal(config: TrainConfig, world: int, strategy=None) -> str | None:
             "--complexity-schedule online adds each training render to Γ over this process's Gaussians, which "
             "--dist-mode shards does not do yet: use the full schedule"
         )
-    if getattr(strategy, "gaussian_order", "auto") == "morton":
-        return (
-            "--gaussian-order morton sorts one process's Gaussians, where on --dist-mode shards the slices in rank "
-            "order are the scene's order: use auto or appended"
-        )
     caps = [
         f"--{option.replace('_', '-')}"
         for option in ("max_gaussians", "target_gaussians")

@@ -252,7 +252,7 @@ class ADC(StrategyOptions):
         "auto",
         "the Gaussians' order in memory after each densification step: morton (sorted by the Morton code of their "
         "means, so that neighbours in space are neighbours in memory: a faster step), appended (the grown after "
-        "the others, as 3DGS), or auto (morton, except on --dist-mode shards, whose slices keep the scene's order)",
+        "the others, as 3DGS), or auto (morton; on --dist-mode shards each process sorts its own slice)",
         choices=("auto", "morton", "appended"),
     )
 
@@ -497,7 +497,7 @@ class ADC(StrategyOptions):
         log = {"cloned": n_clone, "split": n_split, "pruned": n_prune}
         if self.target_gaussians is not None and ctx.step == self.last_densification():
             log.update(self.land_on_target(ctx, after))
-        if self.gaussian_order == "morton" or (self.gaussian_order == "auto" and ctx.whole_scene is None):
+        if self.gaussian_order != "appended":  # on --dist-mode shards, this process's slice
             ops.reorder(model, optimizer, ops.morton_order(model.params["means"]))
         kept_state = {key: state[key] for key in ("budget_initial", "budget_momentum") if key in state}
         state.update(self.initialize_state(model))  # the statistics start again: nothing to reorder
