@@ -142,9 +142,9 @@ def test_cdc_on_two_slices_takes_one_processes_decisions(scene, tmp_path, strate
     operation at a time) and its Γ pass measured in groups of views from the gathered scene
     (GammaGroups). To its first densification (at 4) the same candidates, draws, correlations and
     Gaussians as one process with every Gaussian; there each slice is sorted in Morton order, as one
-    process sorts the whole scene (--gaussian-order auto: checked where the densification ends the
+    process sorts the whole scene (--gaussian-order morton: checked where the densification ends the
     run; the replayed run takes two steps more, its first being eager)."""
-    options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1, "gaussian_order": "auto"}
+    options = {**CLONES, "rho_densify": 0.2, "rho_prune": 0.1, "gaussian_order": "morton"}
     replayed = {}
     if strategy == "cdc":
         options.update(tau_low=1.5e-3, tau_up=2.5e-3)

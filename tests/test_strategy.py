@@ -111,11 +111,18 @@ def test_morton_order_sorts_by_the_interleaved_bits_of_the_cells():
 def test_a_densification_step_puts_the_gaussians_in_morton_order():
     """The same Gaussians as the appended order, moments and all, in the order of their cells'
     Morton codes; the statistics start again at the new count. On --dist-mode shards (a refinement
-    whose context has a whole scene) the process's slice is sorted alike."""
+    whose context has a whole scene) auto keeps the appended order and morton sorts the process's
+    slice alike."""
     runs, start = {}, hand_model()
     with torch.no_grad():  # a scene spread over two axes
         start[0].params["means"][:, 1] = torch.tensor([3.0, 0.0, 2.0, 1.0, 5.0, 4.0])
-    for name, order, sharded in (("appended", "appended", False), ("auto", "auto", False), ("shards", "auto", True)):
+    runs_of = (
+        ("appended", "appended", False),
+        ("auto", "auto", False),
+        ("shards", "auto", True),
+        ("shards, morton", "morton", True),
+    )
+    for name, order, sharded in runs_of:
         model, optimizer = copy.deepcopy(start)
         strategy = ADC(grad_threshold=2e-4, gaussian_order=order)
         state = strategy.initialize_state(model)
@@ -127,7 +134,8 @@ def test_a_densification_step_puts_the_gaussians_in_morton_order():
         log = strategy.densify_and_prune(ctx, state)
         runs[name] = model, optimizer, state, log
     for name, p in runs["shards"][0].params.items():
-        assert torch.equal(p, runs["auto"][0].params[name]), f"auto on shards left the slice unsorted: {name}"
+        assert torch.equal(p, runs["appended"][0].params[name]), f"auto on shards sorted the slice: {name}"
+        assert torch.equal(runs["shards, morton"][0].params[name], runs["auto"][0].params[name]), name
     (appended, appended_adam, _, log_a), (sorted_, sorted_adam, state, log) = runs["appended"], runs["auto"]
     assert log == log_a
     permutation = ops.morton_order(appended.params["means"].detach())

@@ -252,7 +252,8 @@ class ADC(StrategyOptions):
         "auto",
         "the Gaussians' order in memory after each densification step: morton (sorted by the Morton code of their "
         "means, so that neighbours in space are neighbours in memory: a faster step), appended (the grown after "
-        "the others, as 3DGS), or auto (morton; on --dist-mode shards each process sorts its own slice)",
+        "the others, as 3DGS), or auto (morton, except on --dist-mode shards, where it is appended: there morton "
+        "sorts each process's slice, measured no faster)",
         choices=("auto", "morton", "appended"),
     )
 
@@ -497,7 +498,9 @@ class ADC(StrategyOptions):
         log = {"cloned": n_clone, "split": n_split, "pruned": n_prune}
         if self.target_gaussians is not None and ctx.step == self.last_densification():
             log.update(self.land_on_target(ctx, after))
-        if self.gaussian_order != "appended":  # on --dist-mode shards, this process's slice
+        # On --dist-mode shards (a whole scene to decide over) this process's slice alone: no faster
+        # there on 2 x H200 (docs/distributed.md), so auto keeps the appended order.
+        if self.gaussian_order == "morton" or (self.gaussian_order == "auto" and ctx.whole_scene is None):
             ops.reorder(model, optimizer, ops.morton_order(model.params["means"]))
         kept_state = {key: state[key] for key in ("budget_initial", "budget_momentum") if key in state}
         state.update(self.initialize_state(model))  # the statistics start again: nothing to reorder
