@@ -10,10 +10,19 @@ median of ``--repeats`` rounds after two untimed ones:
 
 - ``pack``: the flat buffer alone (``torch.cat``, as ``Ranks.reduce_gradients`` builds it);
 - ``all_reduce``: ``all_reduce`` of a buffer of that size alone;
-- ``exchange``: ``Ranks.reduce_gradients`` whole (pack, all-reduce, division, gradients back).
+- ``exchange``: ``Ranks.reduce_gradients`` whole (pack, all-reduce, division, gradients back);
+- ``shards forward`` and ``shards back``: the exchanges of ``--dist-mode shards``' render alone
+  (:func:`cdcgs.train.shards._swap`, the point-to-point transfers of one group), with the N
+  Gaussians split evenly over the processes: forward, each process sends every other process the 12
+  numbers a Gaussian of its slice that the other's view needs (``cdcgs.train.shards.FIELDS``) and
+  receives theirs; back, the 10 gradients a Gaussian the reverse way.
 
 Bytes per second are the buffer's bytes over the time (for two processes the same as NCCL's bus
-bandwidth). Rank 0 prints the table and writes ``--out`` (JSON) with the machine and the date.
+bandwidth); for the shards' exchanges, the bytes one process sends over the time (it receives as
+many). NCCL's channels for point-to-point transfers are its environment's
+(``NCCL_NCHANNELS_PER_PEER``, ``NCCL_MIN_P2P_NCHANNELS``): the report records every ``NCCL_``
+variable of the launch, so settings are compared by running once per setting. Rank 0 prints the
+table and writes ``--out`` (JSON) with the machine and the date.
 ``--device auto`` puts process i on GPU i (NCCL), ``cpu`` runs on the CPU (gloo).
 """
 
@@ -34,6 +43,8 @@ sys.path.insert(0, os.path.dirname(HERE))
 
 from cdcgs.train.distributed import Ranks, rank_device
 from cdcgs.train.model import PARAM_NAMES
+from cdcgs.train.shard_training import even_rows
+from cdcgs.train.shards import DIFFERENTIABLE, FIELDS, _swap
 
 # floats per Gaussian of each parameter, in PARAM_NAMES's order (SH of degree 3: 1 + 15 coefficients)
 WIDTHS = {"means": 3, "log_scales": 3, "quats": 4, "opacity_logits": 1, "sh_dc": 3, "sh_rest": 45}
@@ -85,7 +96,38 @@ def measure(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
     row["exchange_ms"] = max(timed(device, exchange, repeats) - clones, 0.0)
     for part in ("all_reduce", "exchange"):
         row[f"{part}_gb_per_second"] = row["bytes"] / row[f"{part}_ms"] / 1e6 if row[f"{part}_ms"] > 0 else None
+    row.update(shard_exchanges(ranks, device, n, repeats))
     return row
+
+
+def shard_exchanges(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
+    """The sharded render's two exchanges of ``n`` Gaussians in even slices: their times and the
+    bytes this process sends in each (it receives as many from the others' slices)."""
+    rows, rank = even_rows(n, ranks.world), ranks.rank
+
+    def fields(count: int, names) -> list[torch.Tensor]:
+        dtype = {"radii": torch.int32}
+        return [
+            torch.ones(count, width, dtype=dtype.get(name, torch.float32), device=device).squeeze(-1)
+            for name, width in names
+        ]
+
+    forward = [fields(rows[rank], FIELDS) for _ in rows], [fields(count, FIELDS) for count in rows]
+    gradients = FIELDS[:DIFFERENTIABLE]
+    back = [fields(count, gradients) for count in rows], [fields(rows[rank], gradients) for _ in rows]
+    others = n - rows[rank]
+    sent = {
+        "forward": (ranks.world - 1) * rows[rank] * sum(4 * width for _, width in FIELDS),
+        "back": others * sum(4 * width for _, width in gradients),
+    }
+    result = {}
+    for part, (outgoing, incoming) in (("forward", forward), ("back", back)):
+        exchange = lambda o=outgoing, i=incoming: _swap(o, i, None)  # in the default process group
+        result[f"shards_{part}_ms"] = timed(device, exchange, repeats)
+        result[f"shards_{part}_bytes"] = sent[part]
+        ms = result[f"shards_{part}_ms"]
+        result[f"shards_{part}_gb_per_second"] = sent[part] / ms / 1e6 if ms > 0 else None
+    return result
 
 
 def table(report: dict) -> str:
@@ -93,17 +135,21 @@ def table(report: dict) -> str:
         f"{report['processes']} processes ({report['backend']}) on {report['device']}, {report['date']}; "
         f"median of {report['repeats']} rounds (`python benchmarks/allreduce.py`):",
         "",
-        "| Gaussians | buffer | pack | all-reduce | GB/s | exchange (whole) | GB/s |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "| Gaussians | buffer | pack | all-reduce | GB/s | exchange (whole) | GB/s | shards forward | GB/s "
+        "| shards back | GB/s |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    keys = ("all_reduce", "exchange", "shards_forward", "shards_back")
     for r in report["rows"]:
-        rates = [
-            f"{r[k]:.1f}" if r[k] is not None else "—" for k in ("all_reduce_gb_per_second", "exchange_gb_per_second")
-        ]
+        rates = [f"{r[f'{k}_gb_per_second']:.1f}" if r[f"{k}_gb_per_second"] is not None else "—" for k in keys]
         lines.append(
             f"| {r['gaussians']:,} | {r['bytes'] / 1e6:.1f} MB | {r['pack_ms']:.3f} ms | {r['all_reduce_ms']:.3f} ms "
-            f"| {rates[0]} | {r['exchange_ms']:.3f} ms | {rates[1]} |"
+            f"| {rates[0]} | {r['exchange_ms']:.3f} ms | {rates[1]} | {r['shards_forward_ms']:.3f} ms | {rates[2]} "
+            f"| {r['shards_back_ms']:.3f} ms | {rates[3]} |"
         )
+    nccl = report.get("nccl_env") or {}
+    if nccl:
+        lines += ["", "NCCL: " + ", ".join(f"{k}={v}" for k, v in sorted(nccl.items()))]
     return "\n".join(lines) + "\n"
 
 
@@ -164,7 +210,8 @@ def main(argv=None) -> int:
     finally:
         ranks.close(wait=True)
     if ranks.is_main:
-        report = report_of(ranks, device, args, rows)
+        nccl = {k: v for k, v in os.environ.items() if k.startswith("NCCL_")}
+        report = report_of(ranks, device, args, rows, nccl_env=nccl)
         publish(report, table(report), args.out)
     return 0
 

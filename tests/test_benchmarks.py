@@ -637,7 +637,9 @@ def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
     script = os.path.join(os.path.dirname(allreduce.__file__), "allreduce.py")
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", script]
     command += ["--device", "cpu", "--gaussians", "300", "2000", "--repeats", "2", "--out", str(out)]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    environment = {k: v for k, v in os.environ.items() if not k.startswith("NCCL_")}
+    environment["NCCL_DEBUG"] = "WARN"
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=environment)
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(out.read_text())
     assert (report["processes"], report["backend"], [r["gaussians"] for r in report["rows"]]) == (
@@ -649,6 +651,15 @@ def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
         assert row["bytes"] == 4 * 61 * row["gaussians"]
         assert min(row["pack_ms"], row["all_reduce_ms"]) > 0 and row["exchange_ms"] >= 0
         assert row["all_reduce_gb_per_second"] == pytest.approx(row["bytes"] / row["all_reduce_ms"] / 1e6)
+        # the shards' exchanges, by hand: half of the Gaussians each, 12 numbers a Gaussian forward
+        # to the other process and 10 floats back (4 bytes each)
+        half = row["gaussians"] // 2
+        assert (row["shards_forward_bytes"], row["shards_back_bytes"]) == (48 * half, 40 * half)
+        for part in ("forward", "back"):
+            assert row[f"shards_{part}_ms"] > 0
+            rate = row[f"shards_{part}_bytes"] / row[f"shards_{part}_ms"] / 1e6
+            assert row[f"shards_{part}_gb_per_second"] == pytest.approx(rate)
+    assert report["nccl_env"] == {"NCCL_DEBUG": "WARN"}, "the launch's NCCL variables, recorded"
     assert done.stdout.count("| 2,000 |") == 1, "rank 0 alone prints the table"
     with pytest.raises(SystemExit):
         allreduce.main(["--device", "cpu"])  # one process: refused
