@@ -15,13 +15,14 @@ median of ``--repeats`` rounds after two untimed ones:
   (:func:`cdcgs.train.shards._swap`, the point-to-point transfers of one group), with the N
   Gaussians split evenly over the processes: forward, each process sends every other process the 12
   numbers a Gaussian of its slice that the other's view needs (``cdcgs.train.shards.FIELDS``) and
-  receives theirs; back, the 10 gradients a Gaussian the reverse way.
+  receives theirs; back, the 10 gradients a Gaussian the reverse way. Each round starts with a
+  one-number all-reduce (the processes start together), and what arrives is checked.
 
 Bytes per second are the buffer's bytes over the time (for two processes the same as NCCL's bus
 bandwidth); for the shards' exchanges, the bytes one process sends over the time (it receives as
 many). NCCL's channels for point-to-point transfers are its environment's
 (``NCCL_NCHANNELS_PER_PEER``, ``NCCL_MIN_P2P_NCHANNELS``): the report records every ``NCCL_``
-variable of the launch, so settings are compared by running once per setting. Rank 0 prints the
+variable of the launch and NCCL's version, so settings are compared by running once per setting. Rank 0 prints the
 table and writes ``--out`` (JSON) with the machine and the date.
 ``--device auto`` puts process i on GPU i (NCCL), ``cpu`` runs on the CPU (gloo).
 """
@@ -102,28 +103,40 @@ def measure(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
 
 def shard_exchanges(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
     """The sharded render's two exchanges of ``n`` Gaussians in even slices: their times and the
-    bytes this process sends in each (it receives as many from the others' slices)."""
+    bytes this process sends in each (it receives as many from the others' slices). A one-number
+    all-reduce starts each round, so that the processes start it together. What arrives is checked:
+    every value sent from process s to process r is 1 + s + 10 r."""
     rows, rank = even_rows(n, ranks.world), ranks.rank
 
-    def fields(count: int, names) -> list[torch.Tensor]:
+    def fields(count: int, names, value: float) -> list[torch.Tensor]:
         dtype = {"radii": torch.int32}
         return [
-            torch.ones(count, width, dtype=dtype.get(name, torch.float32), device=device).squeeze(-1)
+            torch.full((count, width), value, dtype=dtype.get(name, torch.float32), device=device).squeeze(-1)
             for name, width in names
         ]
 
-    forward = [fields(rows[rank], FIELDS) for _ in rows], [fields(count, FIELDS) for count in rows]
     gradients = FIELDS[:DIFFERENTIABLE]
-    back = [fields(count, gradients) for count in rows], [fields(rows[rank], gradients) for _ in rows]
-    others = n - rows[rank]
+    forward = (
+        [fields(rows[rank], FIELDS, 1 + rank + 10 * to) for to in range(ranks.world)],
+        [fields(count, FIELDS, -1) for count in rows],
+    )
+    back = (
+        [fields(count, gradients, 1 + rank + 10 * to) for to, count in enumerate(rows)],
+        [fields(rows[rank], gradients, -1) for _ in rows],
+    )
     sent = {
         "forward": (ranks.world - 1) * rows[rank] * sum(4 * width for _, width in FIELDS),
-        "back": others * sum(4 * width for _, width in gradients),
+        "back": (n - rows[rank]) * sum(4 * width for _, width in gradients),
     }
+    start_together = lambda: ranks.all_reduce_(torch.zeros(1, device=device))
     result = {}
     for part, (outgoing, incoming) in (("forward", forward), ("back", back)):
         exchange = lambda o=outgoing, i=incoming: _swap(o, i, None)  # in the default process group
-        result[f"shards_{part}_ms"] = timed(device, exchange, repeats)
+        result[f"shards_{part}_ms"] = timed(device, exchange, repeats, before=start_together)
+        for source, tensors in enumerate(incoming):
+            expected = 1 + source + 10 * rank
+            if any(t.numel() and not bool((t == expected).all()) for t in tensors):
+                raise RuntimeError(f"the shards' {part} exchange delivered wrong values from process {source}")
         result[f"shards_{part}_bytes"] = sent[part]
         ms = result[f"shards_{part}_ms"]
         result[f"shards_{part}_gb_per_second"] = sent[part] / ms / 1e6 if ms > 0 else None
@@ -148,8 +161,9 @@ def table(report: dict) -> str:
             f"| {r['shards_back_ms']:.3f} ms | {rates[3]} |"
         )
     nccl = report.get("nccl_env") or {}
-    if nccl:
-        lines += ["", "NCCL: " + ", ".join(f"{k}={v}" for k, v in sorted(nccl.items()))]
+    if nccl or report.get("nccl_version"):
+        settings = ", ".join(f"{k}={v}" for k, v in sorted(nccl.items())) or "no NCCL_ variables"
+        lines += ["", f"NCCL {report.get('nccl_version') or '(not used)'}: {settings}"]
     return "\n".join(lines) + "\n"
 
 
@@ -211,7 +225,8 @@ def main(argv=None) -> int:
         ranks.close(wait=True)
     if ranks.is_main:
         nccl = {k: v for k, v in os.environ.items() if k.startswith("NCCL_")}
-        report = report_of(ranks, device, args, rows, nccl_env=nccl)
+        library = ".".join(map(str, torch.cuda.nccl.version())) if device.type == "cuda" else None
+        report = report_of(ranks, device, args, rows, nccl_env=nccl, nccl_version=library)
         publish(report, table(report), args.out)
     return 0
 

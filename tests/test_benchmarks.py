@@ -636,7 +636,7 @@ def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
     out = tmp_path / "allreduce.json"
     script = os.path.join(os.path.dirname(allreduce.__file__), "allreduce.py")
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", script]
-    command += ["--device", "cpu", "--gaussians", "300", "2000", "--repeats", "2", "--out", str(out)]
+    command += ["--device", "cpu", "--gaussians", "300", "2001", "--repeats", "2", "--out", str(out)]
     environment = {k: v for k, v in os.environ.items() if not k.startswith("NCCL_")}
     environment["NCCL_DEBUG"] = "WARN"
     done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=environment)
@@ -645,22 +645,25 @@ def test_allreduce_times_the_exchange_of_each_count_on_two_processes(tmp_path):
     assert (report["processes"], report["backend"], [r["gaussians"] for r in report["rows"]]) == (
         2,
         "gloo",
-        [300, 2000],
+        [300, 2001],
     )
     for row in report["rows"]:  # 59 gradients and 2 statistics per Gaussian, float32
         assert row["bytes"] == 4 * 61 * row["gaussians"]
         assert min(row["pack_ms"], row["all_reduce_ms"]) > 0 and row["exchange_ms"] >= 0
         assert row["all_reduce_gb_per_second"] == pytest.approx(row["bytes"] / row["all_reduce_ms"] / 1e6)
-        # the shards' exchanges, by hand: half of the Gaussians each, 12 numbers a Gaussian forward
-        # to the other process and 10 floats back (4 bytes each)
-        half = row["gaussians"] // 2
-        assert (row["shards_forward_bytes"], row["shards_back_bytes"]) == (48 * half, 40 * half)
+    # the shards' exchanges of rank 0 (slices of 150 / 150 and 1,001 / 1,000 Gaussians): 12 numbers
+    # (48 bytes) of each of its own Gaussians forward, 10 floats (40 bytes) of each of the other's back
+    bytes_sent = [(r["shards_forward_bytes"], r["shards_back_bytes"]) for r in report["rows"]]
+    assert bytes_sent == [(7_200, 6_000), (48_048, 40_000)]
+    for row in report["rows"]:
         for part in ("forward", "back"):
             assert row[f"shards_{part}_ms"] > 0
             rate = row[f"shards_{part}_bytes"] / row[f"shards_{part}_ms"] / 1e6
             assert row[f"shards_{part}_gb_per_second"] == pytest.approx(rate)
     assert report["nccl_env"] == {"NCCL_DEBUG": "WARN"}, "the launch's NCCL variables, recorded"
-    assert done.stdout.count("| 2,000 |") == 1, "rank 0 alone prints the table"
+    assert report["nccl_version"] is None  # gloo on the CPU
+    assert "NCCL (not used): NCCL_DEBUG=WARN" in done.stdout
+    assert done.stdout.count("| 2,001 |") == 1, "rank 0 alone prints the table"
     with pytest.raises(SystemExit):
         allreduce.main(["--device", "cpu"])  # one process: refused
     with pytest.raises(SystemExit):

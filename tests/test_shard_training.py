@@ -298,7 +298,7 @@ def test_refusals_name_the_option():
     assert "relocates" in shard_refusal(config, 2, make_strategy("mcmc", {}))
     assert "--target-gaussians" in shard_refusal(config, 2, make_strategy("3dgs", {"target_gaussians": 100}))
     assert "--budget-schedule" in shard_refusal(config, 2, make_strategy("fast", {}))
-    for order in ("appended", "morton", "auto"):  # each process sorts its own slice
+    for order in ("appended", "morton", "auto"):  # morton sorts each process's own slice
         assert shard_refusal(config, 2, make_strategy("3dgs", {"gaussian_order": order})) is None
     assert shard_refusal(task_config("s", "o", sync_free=True, cuda_graph=True), 2) is None
     assert "selective" in shard_refusal(task_config("s", "o", optimizer="selective"), 2)
