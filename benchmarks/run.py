@@ -56,6 +56,7 @@ STAGES = [
     ("projection backward", ("projection_ewa_3dgs_fused_bwd",)),
     ("loss (L1 + D-SSIM)", ("ssim_l1",)),
     ("optimizer (Adam)", ("adam",)),  # ours (fused_adam_kernel) and torch's (FusedAdamMathFunctor)
+    ("communication (NCCL)", ("nccl",)),  # on a stream of its own: it may overlap the others
 ]
 
 

@@ -153,7 +153,9 @@ def _add_train_parser(sub):
     p.set_defaults(func=cmd_train)
 
 
-def cmd_train(args) -> int:
+def cmd_train(args, callbacks=()) -> int:
+    """``cdcgs train``; ``callbacks``: more of the trainer's callbacks (a benchmark's: every
+    process of a torchrun launch gets them)."""
     from .train.config import TrainConfig
     from .train.strategies import make_strategy
     from .train.trainer import Trainer, TrainingDiverged, resolve_device
@@ -169,7 +171,7 @@ def cmd_train(args) -> int:
     resolve_device(config.device)
     # In a torchrun launch only rank 0 speaks and serves the viewer (docs/distributed.md).
     main_rank = os.environ.get("RANK", "0") in ("", "0")
-    callbacks = []
+    callbacks = list(callbacks)
     if args.view and config.cuda_graph:  # refused before the scene loads (the trainer would too)
         raise OptionError("--view renders while the training captures its steps: drop --view or --cuda-graph")
     if args.view and main_rank:

@@ -859,3 +859,31 @@ def test_shard_step_times_the_three_ways_on_two_processes(tiny_scene, tmp_path):
         shard_step.main(["--data", str(tiny_scene), "--device", "cpu"])  # one process: refused
     with pytest.raises(SystemExit):
         shard_step.main(["--data", str(tiny_scene), "--gaussians", "0"])
+
+
+def test_profile_training_profiles_a_window_of_a_real_training(tiny_scene, tmp_path, capsys, monkeypatch):
+    """A window of two optimizer steps from iteration 3 of an 8-iteration training on the CPU: the
+    training runs as cdcgs train runs it (its files written), the window holds steps 4 and 5, and the
+    report has this process's figures; a window past the training's end says that nothing was
+    profiled; the benchmark's own options are checked."""
+    import profile_training
+
+    out = tmp_path / "profile.json"
+    train = ["--data", str(tiny_scene), "--iters", "8", "--device", "cpu", "--out", str(tmp_path / "run")]
+    train += ["--eval-every", "0", "--no-save-renders", "--no-progress"]
+    assert profile_training.main(["--from", "3", "--steps", "2", "--out", str(out), "--", *train]) == 0
+    assert (tmp_path / "run" / "metrics.json").is_file()
+    report = json.loads(out.read_text())
+    assert report["train_options"] == train
+    (mine,) = report["ranks"]
+    assert (mine["rank"], mine["steps"], mine["iterations"], mine["device"]) == (0, 2, [4, 5], "cpu")
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert mine["gaussians"] == metrics["num_gaussians"] and mine["wall_ms_per_step"] > 0
+    assert "| wall (ms, profiled) |" in capsys.readouterr().out
+    # a training that ends before the window (its callback never called: no steps at all)
+    monkeypatch.setattr(profile_training.cli, "cmd_train", lambda args, callbacks=(): 0)
+    assert profile_training.main(["--from", "10", "--", *train]) == 1
+    assert "ended before iteration 10" in capsys.readouterr().err
+    for bad in (["--steps", "0", "--", *train], ["--from", "2"]):
+        with pytest.raises(SystemExit):
+            profile_training.main(bad)
