@@ -89,6 +89,37 @@ def test_without_a_mask_it_is_torch_adam(device):
     torch.testing.assert_close(ours.state[a]["exp_avg_sq"], theirs.state[b]["exp_avg_sq"])
 
 
+def test_a_gradient_scale_steps_the_scaled_gradients(device):
+    """``gradient_scale`` s (the mean of a sum of two or three views' gradients, as the training on
+    shards steps it): the float64 Adam of the gradients times s, parameters and moments, over five
+    steps of gradients far from 1 (so that a rate scaled by s where it needs s^2 shows); the
+    rates table's rows (``advance``) hold (1 - beta1) s and (1 - beta2) s^2, in double precision."""
+    g = torch.Generator().manual_seed(9)
+    lr, betas, eps = 0.01, (0.9, 0.999), 1e-15
+    for scale in (0.5, 1.0 / 3.0):
+        start = {"a": torch.randn(40, 3, generator=g), "b": torch.randn(40, generator=g)}
+        params = {k: v.clone().to(device).requires_grad_() for k, v in start.items()}
+        fused = FusedAdam(list(params.values()), lr=lr, betas=betas, eps=eps)
+        grads = []
+        for _ in range(5):
+            grad = {k: 40.0 * torch.randn(v.shape, generator=g) for k, v in start.items()}
+            grads.append({k: v * scale for k, v in grad.items()})
+            for k, p in params.items():
+                p.grad = grad[k].to(device)
+            fused.step(gradient_scale=scale)
+        everywhere = [torch.ones(40, dtype=torch.bool)] * 5
+        p64, m64, v64 = reference_steps(start, grads, everywhere, lr, betas, eps)
+        for k, p in params.items():
+            torch.testing.assert_close(p.detach().cpu().double(), p64[k], rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(fused.state[p]["exp_avg"].cpu().double(), m64[k], rtol=1e-5, atol=1e-5)
+            torch.testing.assert_close(fused.state[p]["exp_avg_sq"].cpu().double(), v64[k], rtol=1e-5, atol=1e-5)
+    rows = FusedAdam([torch.zeros(2, 3, requires_grad=True)], betas=(0.9, 0.99))
+    rows.state[rows.param_groups[0]["params"][0]]["step"] = torch.tensor(0.0)
+    rows.state[rows.param_groups[0]["params"][0]].update(exp_avg=torch.zeros(2, 3), exp_avg_sq=torch.zeros(2, 3))
+    (row,) = rows.advance(rows.param_groups[0]["params"], gradient_scale=0.25)
+    assert row[3] == (1.0 - 0.9) * 0.25 and row[4] == (1.0 - 0.99) * 0.0625
+
+
 # A 3DGS model's parameters: rows of 3, 3, 4, 1 (a 1-D tensor), 1 x 3 and 15 x 3 values.
 MODEL_SHAPES = [(3,), (3,), (4,), (), (1, 3), (15, 3)]
 

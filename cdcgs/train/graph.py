@@ -286,7 +286,7 @@ class GraphSteps:
             trainer._nonfinite_at is not None,
             *views,
         )
-        self._rates_slots[slot] = trainer.optimizer.advance(self._params)
+        self._rates_slots[slot] = trainer.optimizer.advance(self._params, self.gradient_scale())
         self.where.copy_(self._where_ring[slot], non_blocking=True)
         self._rates.copy_(self._rates_ring[slot], non_blocking=True)
         for p in positions:
@@ -433,6 +433,11 @@ class GraphSteps:
         if not self.cuda:
             self.trainer.optimizer.zero_grad(set_to_none=True)
             self._grads = None
+
+    def gradient_scale(self) -> float:
+        """What Adam multiplies the step's gradients by (folded into its rates): 1, the step's body
+        having made them the batch's mean itself."""
+        return 1.0
 
     def _fused_params(self) -> list:
         """The parameters whose Adam step the SH adjoint applies (``FUSE_SH_ADAM``): the SH

@@ -37,11 +37,19 @@ class FusedAdam(torch.optim.Optimizer):
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
 
     @torch.no_grad()
-    def step(self, selected: torch.Tensor | None = None, closure=None, halt: torch.Tensor | None = None):
+    def step(
+        self,
+        selected: torch.Tensor | None = None,
+        closure=None,
+        halt: torch.Tensor | None = None,
+        gradient_scale: float = 1.0,
+    ):
         """One Adam step of the rows where ``selected`` [N] (bool) is True; every row without it.
         Parameters without a gradient are skipped, as Adam skips them. ``halt``: an int32 device
         flag; while its first entry is non-zero the launch changes nothing on the device (the step
-        counts, kept on the host, still advance: the caller that halts restores them)."""
+        counts, kept on the host, still advance: the caller that halts restores them).
+        ``gradient_scale``: the step of the gradients times this, with no pass over them (folded
+        into the moments' rates, :func:`_advance`)."""
         loss = None
         if closure is not None:
             with torch.enable_grad():
@@ -60,7 +68,7 @@ class FusedAdam(torch.optim.Optimizer):
                 state["step"] = torch.zeros((), dtype=torch.float32)
                 state["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
                 state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-            rates = _advance(group, state)
+            rates = _advance(group, state, gradient_scale)
             grad = p.grad.contiguous()
             held.append(grad)
             rows = p.shape[0] if p.dim() else 1
@@ -80,12 +88,13 @@ class FusedAdam(torch.optim.Optimizer):
             increment_version(p)
         return loss
 
-    def advance(self, params: list[torch.Tensor]) -> list[list[float]]:
+    def advance(self, params: list[torch.Tensor], gradient_scale: float = 1.0) -> list[list[float]]:
         """What ``step()`` does on the host for ``params`` (each with its Adam state), for a step
         that launches Adam itself (a captured one, :mod:`cdcgs.train.graph`): their step counts
-        advanced, and their rows of ``fused_adam_kernel``'s rates table."""
+        advanced, and their rows of ``fused_adam_kernel``'s rates table (``gradient_scale`` as
+        ``step``'s)."""
         group_of = {id(p): group for group in self.param_groups for p in group["params"]}
-        return [_advance(group_of[id(p)], self.state[p]) for p in params]
+        return [_advance(group_of[id(p)], self.state[p], gradient_scale) for p in params]
 
 
 def launch_adam(
@@ -108,10 +117,12 @@ def launch_adam(
         )
 
 
-def _advance(group: dict, state: dict) -> list[float]:
+def _advance(group: dict, state: dict, gradient_scale: float = 1.0) -> list[float]:
     """Advance one parameter's step count; its row of the rates table (lr, beta1, beta2, 1 - beta1,
     1 - beta2, eps and the two bias corrections of the new count, in double precision as torch
-    computes them)."""
+    computes them). ``gradient_scale`` s: the rates of the gradient times s, which Adam reads only
+    through (1 - beta1) g and (1 - beta2) g^2: those two rates times s and s^2, so that no pass
+    scales the gradients (the same step to float rounding)."""
     if state["step"].device.type != "cpu":  # torch's fused Adam keeps it on the device: once
         state["step"] = state["step"].cpu()
     state["step"] += 1
@@ -121,8 +132,8 @@ def _advance(group: dict, state: dict) -> list[float]:
         float(group["lr"]),
         beta1,
         beta2,
-        1.0 - beta1,  # in double precision, as torch passes it
-        1.0 - beta2,
+        (1.0 - beta1) * gradient_scale,  # in double precision, as torch passes it
+        (1.0 - beta2) * gradient_scale * gradient_scale,
         float(group["eps"]),
         1.0 - beta1**t,
         math.sqrt(1.0 - beta2**t),

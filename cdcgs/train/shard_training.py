@@ -11,8 +11,9 @@ What a step does, with W processes and a batch of B views (B >= W):
 2. The render sends each view the projection of every slice; its backward pass returns each
    slice's share of the view's gradients to the slice's process, which finishes the projection's
    and the SH evaluation's adjoints. A process's gradients are thus its slice's gradients summed
-   over the batch's views, divided here by B: the mean over the batch, as data parallelism's
-   all-reduce gives it, with nothing all-reduced.
+   over the batch's views, divided by B: the mean over the batch, as data parallelism's
+   all-reduce gives it, with nothing all-reduced (with FusedAdam, the division folded into Adam's
+   rates: ``gradient_scale``).
 3. The densification statistics: the render's ``info`` holds the whole scene's projection into the
    view, so each process adds its views' positional gradients and screen radii into statistics
    over the whole scene (3 floats a Gaussian). At a refinement they are reduced over the
@@ -67,6 +68,7 @@ from .graph import GraphSteps
 from .interrupt import Interrupted
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer
+from .optim import FusedAdam
 from .shards import rasterize_shard
 from .strategies import make_strategy
 from .strategy import StepContext
@@ -189,12 +191,14 @@ class ShardGraphSteps(GraphSteps):
         halt = trainer._share_halt()
         for _, _, ctx in seen:
             trainer.strategy.observe(ctx, trainer.strategy_state)
-        if self.batch != 1:
-            for p in self._params:  # the sum over the batch's views, as its mean
-                p.grad.div_(self.batch)
         for loss, image_psnr, _ in seen:
             trainer.guard.record(loss, image_psnr, halt)
-        self._adam(None, halt)
+        self._adam(None, halt)  # of the gradients' mean over the batch: gradient_scale
+
+    def gradient_scale(self) -> float:
+        """1 / the batch: the gradients are the sum over the batch's views, and Adam steps their
+        mean, the division folded into its rates (no pass over the slice's gradients)."""
+        return 1.0 / self.batch
 
 
 # NCCL registers the buffers of a captured graph's transfers unless told not to: with the sharded
@@ -389,10 +393,16 @@ class ShardedTrainer(Trainer):
         if any(self.strategy.refines_at(iteration) for iteration in range(first, last + 1)):
             self._scene_generator = torch.Generator(device=self.device)
             self._scene_generator.set_state(self.generator.get_state())
-        for group in self.optimizer.param_groups:  # the sum over the batch's views, as its mean
-            p = group["params"][0]
-            if p.grad is not None and count != 1:
-                p.grad.div_(count)
+        # Adam steps the mean over the batch's views of the gradients' sum: FusedAdam with the
+        # division folded into its rates (as the replayed steps), another Adam after a division.
+        adam = {} if halt is None else {"halt": halt}
+        if isinstance(self.optimizer, FusedAdam):
+            adam["gradient_scale"] = 1.0 / count
+        elif count != 1:
+            for group in self.optimizer.param_groups:
+                p = group["params"][0]
+                if p.grad is not None:
+                    p.grad.div_(count)
         for loss, image_psnr, _ in seen:
             self.guard.record(loss, image_psnr, halt)
         self.step = last
@@ -408,7 +418,7 @@ class ShardedTrainer(Trainer):
                     self._synchronize()
                     log["refine_seconds"] = time.perf_counter() - began
                     self.step_events.append((iteration, log))
-        self.optimizer.step(**({} if halt is None else {"halt": halt}))
+        self.optimizer.step(**adam)
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.after_step(self._context(last), self.strategy_state)
         if timed:
