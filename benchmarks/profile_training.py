@@ -7,18 +7,24 @@
 
 ``TRAIN OPTIONS`` are ``cdcgs train``'s, taken as the command takes them (the steps replayed as CUDA
 graphs where the training replays them: the window is a callback, which no training refuses).
-When the training reaches iteration ``--from``, every process waits for its device, starts the wall
-clock and torch.profiler (CUDA's kernels: CUPTI sees Warp's, torch's and NCCL's, those of replayed
-graphs included), and ``--steps`` optimizer steps later waits for the device again and stops both.
+After the step that reaches iteration ``--from``, every process waits for its device, starts the
+wall clock and torch.profiler (CUDA's kernels: CUPTI sees Warp's, torch's and NCCL's, those of
+replayed graphs included), and ``--steps`` optimizer steps later waits for the device again and
+stops both.
 Each process summarises its window as ``benchmarks/profile_step.py`` summarises a step's profile:
 wall milliseconds per step, the share of the window its GPU is busy (the union of the kernels'
-intervals: NCCL's kernels run on a stream of their own, beside the others), GPU milliseconds per
+intervals: NCCL's kernels run on a stream of their own, beside the others, and a kernel of theirs
+that waits for the other GPU counts as busy: its stage's time holds the wait), GPU milliseconds per
 step by stage (``benchmarks/run.py``'s stages, NCCL's kernels one of them) and the kernels that
 take the most. Rank 0 prints every process's figures side by side and writes ``--out`` (JSON). The
 profiler slows the host: compare GPU times, and the busy share, rather than the wall clock.
 
-A window that a densification step, an evaluation or a checkpoint falls into holds their kernels
-too; choose ``--from`` past the densification (``--densify-until``) for the steady state.
+A window that a densification step, an evaluation, a checkpoint or a timed step of several
+processes (one in 250, eager, each exchange waited for) falls into holds their work too; choose
+``--from`` past the densification (``--densify-until``) for the steady state. Steps taken again
+after a render overflowed its slots (``--sync-free``, the replayed steps) are counted as they are
+taken: the report gives the window's rewinds. Only a training that reaches its end reports (a
+failed one stops its profiler and leaves the others to the training's own error).
 """
 
 from __future__ import annotations
@@ -68,8 +74,13 @@ class ProfileWindow:
             self._stop(trainer)
 
     def on_end(self, trainer) -> None:
-        if self._profiler is not None and self.reports is None and self._steps_in:
+        if self._profiler is None or self.reports is not None:
+            return
+        if self._steps_in and trainer.step >= trainer.config.iters:
             self._stop(trainer)  # the training ended inside the window: what it held
+        else:  # no step in the window, or a training that failed: no collective with the others
+            self._profiler.__exit__(None, None, None)
+            self._profiler = None
 
     def _start(self, trainer) -> None:
         from torch.profiler import ProfilerActivity, profile
@@ -81,6 +92,11 @@ class ProfileWindow:
         self._profiler.__enter__()
         self._started_at = time.perf_counter()
         self._first_step = trainer.step
+        self._rewinds = self._rewinds_of(trainer)
+
+    @staticmethod
+    def _rewinds_of(trainer) -> int:
+        return trainer.lookahead.rewinds if trainer.lookahead is not None else 0
 
     def _stop(self, trainer) -> None:
         if trainer.device.type == "cuda":
@@ -92,6 +108,7 @@ class ProfileWindow:
             rank=trainer.ranks.rank,
             steps=self._steps_in,
             iterations=[self._first_step + 1, trainer.step],
+            rewinds=self._rewinds_of(trainer) - self._rewinds,
             device=torch.cuda.get_device_name(trainer.device) if trainer.device.type == "cuda" else "cpu",
         )
         self._profiler = None
@@ -112,6 +129,8 @@ def table(reports: list[dict]) -> str:
     def row(label: str, values) -> None:
         lines.append(f"| {label} | " + " | ".join(values) + " |")
 
+    if any(r["rewinds"] for r in reports):
+        lines[0] += f" ({reports[0]['rewinds']} rewinds in the window: steps taken again are counted twice)"
     row("wall (ms, profiled)", [f"{r['wall_ms_per_step']:.2f}" for r in reports])
     row("GPU busy", [f"{100 * r['gpu_busy_share']:.0f}%" if r["gpu_busy_share"] else "—" for r in reports])
     row("kernels (ms)", [f"{r['kernel_ms_per_step']:.2f}" for r in reports])
@@ -128,7 +147,13 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     mine, train = (argv[: argv.index("--")], argv[argv.index("--") + 1 :]) if "--" in argv else (argv, [])
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--from", dest="first", type=int, default=4000, help="the iteration the window starts at")
+    parser.add_argument(
+        "--from",
+        dest="first",
+        type=int,
+        default=4000,
+        help="the window starts after the step that reaches this iteration",
+    )
     parser.add_argument("--steps", type=int, default=100, help="optimizer steps in the window")
     parser.add_argument("--out", default=None, help="JSON file of every process's figures (rank 0 writes it)")
     args = parser.parse_args(mine)

@@ -877,6 +877,7 @@ def test_profile_training_profiles_a_window_of_a_real_training(tiny_scene, tmp_p
     assert report["train_options"] == train
     (mine,) = report["ranks"]
     assert (mine["rank"], mine["steps"], mine["iterations"], mine["device"]) == (0, 2, [4, 5], "cpu")
+    assert mine["rewinds"] == 0
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert mine["gaussians"] == metrics["num_gaussians"] and mine["wall_ms_per_step"] > 0
     assert "| wall (ms, profiled) |" in capsys.readouterr().out

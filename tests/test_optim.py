@@ -117,7 +117,7 @@ def test_a_gradient_scale_steps_the_scaled_gradients(device):
     rows.state[rows.param_groups[0]["params"][0]]["step"] = torch.tensor(0.0)
     rows.state[rows.param_groups[0]["params"][0]].update(exp_avg=torch.zeros(2, 3), exp_avg_sq=torch.zeros(2, 3))
     (row,) = rows.advance(rows.param_groups[0]["params"], gradient_scale=0.25)
-    assert row[3] == (1.0 - 0.9) * 0.25 and row[4] == (1.0 - 0.99) * 0.0625
+    assert row[3] == pytest.approx(0.025, rel=1e-12) and row[4] == pytest.approx(0.000625, rel=1e-12)
 
 
 # A 3DGS model's parameters: rows of 3, 3, 4, 1 (a 1-D tensor), 1 x 3 and 15 x 3 values.

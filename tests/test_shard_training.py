@@ -91,7 +91,17 @@ def test_two_slices_train_as_one_process_with_every_gaussian(runs):
     assert r0["params"]["means"].shape[0] + r1["params"]["means"].shape[0] == one["metrics"]["num_gaussians"]
     sharded = load_checkpoint(str(tmp / "two" / "checkpoint.pt"), map_location="cpu")
     whole = load_checkpoint(str(tmp / "one" / "checkpoint.pt"), map_location="cpu")
-    assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+    nearest = assert_same_gaussians(sharded["model"]["params"], whole["model"]["params"])
+    # Adam's moments: of the batch's mean gradient (each slice's sum of three views' gradients, the
+    # division by the batch folded into Adam's rates) as one process's (which divides the
+    # gradients), row for row. The two round differently, and Adam and the colours' clamp at 0 carry
+    # that far in a few entries (the SH coefficients' moments up to 2% of the largest apart, 0.5% on
+    # average): the mean difference is bounded; a wrong scale (1/3 for 1/9, or none) is 2x to 8x.
+    for index, group in enumerate(sharded["optimizer"]["param_groups"]):
+        twin = [g["name"] for g in whole["optimizer"]["param_groups"]].index(group["name"])
+        for key in ("exp_avg", "exp_avg_sq"):
+            mine, theirs = sharded["optimizer"]["state"][index][key], whole["optimizer"]["state"][twin][key][nearest]
+            assert (mine - theirs).abs().mean() <= 2e-2 * theirs.abs().mean(), (group["name"], key)
     ply = read_ply(str(tmp / "two" / "point_cloud.ply"))
     torch.testing.assert_close(ply.means, sharded["model"]["params"]["means"])
     # Adam's moments gathered with the parameters: their rows in the parameters' order

@@ -157,8 +157,8 @@ class ShardGraphSteps(GraphSteps):
     def _body(self) -> None:
         """The step's device work: in round k process r renders position k * W + r of the batch
         (its iteration and view in ``where``), every process's camera of the round picked from the
-        step's views; then the halt shared, the statistics, the gradients averaged over the batch,
-        the guard's records and Adam on this slice."""
+        step's views; then the halt shared, the statistics, the guard's records and Adam on this
+        slice (of the batch's mean: ``gradient_scale``)."""
         trainer = self.trainer
         cameras, _, prepared, photos = self._tables_at(self._scale)
         lookahead = trainer.lookahead
