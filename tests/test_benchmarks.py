@@ -861,15 +861,16 @@ def test_shard_step_times_the_three_ways_on_two_processes(tiny_scene, tmp_path):
         shard_step.main(["--data", str(tiny_scene), "--gaussians", "0"])
 
 
-def test_profile_training_profiles_a_window_of_a_real_training(tiny_scene, tmp_path, capsys, monkeypatch):
+def test_profile_training_profiles_a_window_of_a_real_training(tmp_path, capsys, monkeypatch):
     """A window of two optimizer steps from iteration 3 of an 8-iteration training on the CPU: the
     training runs as cdcgs train runs it (its files written), the window holds steps 4 and 5, and the
     report has this process's figures; a window past the training's end says that nothing was
     profiled; the benchmark's own options are checked."""
     import profile_training
 
+    scene = make_procedural_scene(tmp_path / "scene", views=6, width=32, height=24, points=200)
     out = tmp_path / "profile.json"
-    train = ["--data", str(tiny_scene), "--iters", "8", "--device", "cpu", "--out", str(tmp_path / "run")]
+    train = ["--data", str(scene), "--iters", "8", "--device", "cpu", "--out", str(tmp_path / "run")]
     train += ["--eval-every", "0", "--no-save-renders", "--no-progress"]
     assert profile_training.main(["--from", "3", "--steps", "2", "--out", str(out), "--", *train]) == 0
     assert (tmp_path / "run" / "metrics.json").is_file()
