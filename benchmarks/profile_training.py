@@ -46,6 +46,7 @@ from profile_step import summarise
 from run import STAGES
 
 from cdcgs import cli
+from cdcgs.errors import InputError, OptionError
 
 
 class ProfileWindow:
@@ -164,7 +165,11 @@ def main(argv=None) -> int:
     cli.ask_for_expandable_segments()
     train_args = cli.build_parser().parse_args(["train", *train])
     window = ProfileWindow(args.first, args.steps)
-    code = cli.cmd_train(train_args, callbacks=[window])
+    try:
+        code = cli.cmd_train(train_args, callbacks=[window])
+    except (InputError, OptionError) as err:  # as cdcgs train says them: a path or an option named
+        print(f"profile_training: {err}", file=sys.stderr)
+        return 2
     if code != 0:
         return code
     if window.reports is None:

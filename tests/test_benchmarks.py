@@ -882,6 +882,10 @@ def test_profile_training_profiles_a_window_of_a_real_training(tmp_path, capsys,
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert mine["gaussians"] == metrics["num_gaussians"] and mine["wall_ms_per_step"] > 0
     assert "| wall (ms, profiled) |" in capsys.readouterr().out
+    # a scene that is not there: cdcgs train's error, named, no traceback
+    missing = ["--data", str(tmp_path / "nowhere"), "--device", "cpu", "--out", str(tmp_path / "none")]
+    assert profile_training.main(["--", *missing]) == 2
+    assert "nowhere" in capsys.readouterr().err
     # a training that ends before the window (its callback never called: no steps at all)
     monkeypatch.setattr(profile_training.cli, "cmd_train", lambda args, callbacks=(): 0)
     assert profile_training.main(["--from", "10", "--", *train]) == 1

@@ -5,10 +5,11 @@ A step's host work (Python, torch's autograd, some sixty launches) takes about a
 kernels below a million Gaussians, so the GPU waits for the host. With ``--cuda-graph`` the step
 (for each of the process's views of the batch: render into slots, the note of its count, the loss,
 the backward pass; then the strategy's statistics, the average over the batch (on shards folded
-into Adam's rates), the guard's records, one Adam launch; in a step of one view on one process the SH coefficients' Adam step is taken by
-their adjoint instead, ``FUSE_SH_ADAM``) is captured once under ``torch.cuda.graph``,
-Warp told of the capture, and replayed: per step the host only picks the view and computes Adam's
-rates, writes them into pinned memory and queues two small copies and the replay.
+into Adam's rates), the guard's records, one Adam launch; in a step of one view on one process the
+SH coefficients' Adam step is taken by their adjoint instead, ``FUSE_SH_ADAM``) is captured once
+under ``torch.cuda.graph``, Warp told of the capture, and replayed: per step the host only picks the
+view and computes Adam's rates, writes them into pinned memory and queues two small copies and the
+replay.
 
 What a captured step reads that changes from step to step lives on the device:
 
