@@ -1,9 +1,14 @@
 """Processes for the data-parallel tests: a launcher that starts N ranks of a task on the CPU with
 gloo, as torchrun would (its environment variables), and the tasks they run.
 
-Each task runs in a fresh process (spawn), returns a picklable result, and the launcher collects
-every rank's result or error with its exit code and time; ``run_here`` runs a one-process
-reference in the caller's process instead (it saves a process start on a 2-core machine).
+Each task runs in a fresh process, returns a picklable result, and the launcher collects every
+rank's result or error with its exit code and time; ``run_here`` runs a one-process reference in
+the caller's process instead (it saves a process start on a 2-core machine). The processes are
+forked from multiprocessing's fork server, which has imported torch, Warp and cdcgs once for the
+whole session (``PRELOAD``): a spawned process spent about 3 s of a 2-core machine on those imports
+before its task began, more than most tasks take. Each process still starts as a new one (its own
+process group, Warp runtime and kernels, signal handlers and exit), with the caller's environment
+and working directory of the moment it starts.
 """
 
 from __future__ import annotations
@@ -23,7 +28,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _entry(task: str, rank: int, world: int, port: int, result_path: str, kwargs: dict) -> None:
+# What the fork server imports before it forks any process: nothing here may start a thread or
+# initialise CUDA (torch and Warp initialise their devices at first use, in each process).
+PRELOAD = ["torch", "torch.distributed", "torch._dynamo", "warp", "cdcgs.train", "cdcgs.train.shard_training"]
+PRELOAD += ["matplotlib.pyplot", "dist_tasks"]
+
+
+def _entry(task: str, rank: int, world: int, port: int, result_path: str, kwargs: dict, caller: tuple) -> None:
+    environment, cwd = caller  # the fork server's are those of the session's first launch
+    os.environ.clear()
+    os.environ.update(environment)
+    os.chdir(cwd)
     os.environ.update(
         {
             "RANK": str(rank),
@@ -51,11 +66,14 @@ def _entry(task: str, rank: int, world: int, port: int, result_path: str, kwargs
 def run_ranks(task: str, world: int, tmp_path, timeout: float = 60.0, **kwargs) -> list[dict]:
     """Run ``task`` on ``world`` processes (ranks 0..world-1, gloo on the CPU); each rank's
     {"result" or "error", "message", "seconds", "exitcode"}, in rank order."""
-    context = multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(PRELOAD)  # read when the server starts: the first launch
     port = free_port()
+    caller = (dict(os.environ), os.getcwd())
     paths = [os.path.join(str(tmp_path), f"rank{rank}_{task}_{port}.pkl") for rank in range(world)]
     processes = [
-        context.Process(target=_entry, args=(task, rank, world, port, paths[rank], kwargs)) for rank in range(world)
+        context.Process(target=_entry, args=(task, rank, world, port, paths[rank], kwargs, caller))
+        for rank in range(world)
     ]
     for p in processes:
         p.start()
