@@ -161,9 +161,10 @@ def first_step_gradients(
     captured = {}
     real_step = None
 
-    def spy(*args, **kwargs):
+    def spy(*args, **kwargs):  # what Adam steps: the gradients times its gradient_scale (1 / the batch)
+        scale = kwargs.get("gradient_scale", 1.0)
         for group in trainer.optimizer.param_groups:
-            captured[group["name"]] = group["params"][0].grad.detach().cpu().clone()
+            captured[group["name"]] = (group["params"][0].grad * scale).detach().cpu()
         return real_step(*args, **kwargs)
 
     from cdcgs.train.distributed import Ranks

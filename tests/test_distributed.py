@@ -537,13 +537,36 @@ def test_a_batch_gradient_is_the_mean_of_its_views(small_scene, tmp_path):
         loss, _ = fused_photometric_loss(image, trainer.scene.train[index].image, trainer.config.ssim_weight)
         for e, g in zip(expected, torch.autograd.grad(loss, params)):
             e += g / 3
-    captured = []
-    real_step = trainer.optimizer.step
-    trainer.optimizer.step = lambda *a, **k: (captured.extend(p.grad.clone() for p in params), real_step(*a, **k))
+    steps = spy_on_adam(trainer, params)
     trainer.train_step()
     assert trainer.step == 3
-    for got, want, group in zip(captured, expected, trainer.optimizer.param_groups):
+    # FusedAdam takes the views' sums and the division by the batch in its rates (gradient_scale)
+    assert [scale for scale, _ in steps] == [1.0 / 3]
+    for got, want, group in zip(steps[0][1], expected, trainer.optimizer.param_groups):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-9, msg=group["name"])
+    # torch's Adam takes no scale: it is given the mean
+    config = small_config(small_scene, tmp_path / "torch", batch_size=3, optimizer="torch-adam")
+    trainer = Trainer(config, dict(SCHEDULE))
+    trainer._setup()
+    params = [g["params"][0] for g in trainer.optimizer.param_groups]
+    steps = spy_on_adam(trainer, params)
+    trainer.train_step()
+    assert [scale for scale, _ in steps] == [None]
+    for got, want, group in zip(steps[0][1], expected, trainer.optimizer.param_groups):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-9, msg=group["name"])
+
+
+def spy_on_adam(trainer, params) -> list:
+    """Each optimizer step's (gradient_scale or None, the gradients times it: what Adam steps)."""
+    steps, real = [], trainer.optimizer.step
+
+    def step(*args, **kwargs):
+        scale = kwargs.get("gradient_scale")
+        steps.append((scale, [p.grad * (1.0 if scale is None else scale) for p in params]))
+        return real(*args, **kwargs)
+
+    trainer.optimizer.step = step
+    return steps
 
 
 @pytest.mark.parametrize("batch", [3, 4])

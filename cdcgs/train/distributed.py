@@ -295,14 +295,17 @@ class Ranks:
             described = "; ".join(f"rank {rank}: {report}" for rank, report in failed)
             raise RankFailed(f"{when} failed on {len(failed)} of {self.world} ranks ({described})")
 
-    def reduce_gradients(self, params, count: int, extras: list[torch.Tensor] = ()) -> list[torch.Tensor]:
+    def reduce_gradients(
+        self, params, count: int, extras: list[torch.Tensor] = (), divide: bool = True
+    ) -> list[torch.Tensor]:
         """Sum the gradients of ``params`` over the ranks in one flat all-reduce and divide them by
         ``count``, the views of the whole batch (a parameter this rank gave no gradient counts as
         zeros); ``extras`` (float tensors) travel in the same buffer, summed, and come back in
-        order. One process: the division only."""
+        order. One process: the division only. ``divide=False``: the sums, for an optimizer that
+        takes the division itself (``FusedAdam``'s ``gradient_scale``)."""
         params = list(params)
         if not self.distributed:
-            if count != 1:
+            if count != 1 and divide:
                 for p in params:
                     if p.grad is not None:
                         p.grad.div_(count)
@@ -312,7 +315,9 @@ class Ranks:
         pieces += [e.reshape(-1).to(device=device, dtype=torch.float32) for e in extras]
         flat = torch.cat(pieces)
         self.all_reduce_(flat)
-        flat_grads = flat[: sum(p.numel() for p in params)].div_(count)
+        flat_grads = flat[: sum(p.numel() for p in params)]
+        if divide and count != 1:
+            flat_grads.div_(count)
         offset = 0
         for p in params:  # views of the buffer: no copy back (the optimizer reads them in place)
             p.grad = flat_grads[offset : offset + p.numel()].view_as(p)

@@ -436,9 +436,10 @@ class GraphSteps:
             self._grads = None
 
     def gradient_scale(self) -> float:
-        """What Adam multiplies the step's gradients by (folded into its rates): 1, the step's body
-        having made them the batch's mean itself."""
-        return 1.0
+        """What Adam multiplies the step's gradients by (folded into its rates): the body leaves the
+        batch's sums (``Trainer.folds_batch_mean``, which the replayed steps' FusedAdam holds), so
+        1 / batch."""
+        return 1.0 / self.batch
 
     def _fused_params(self) -> list:
         """The parameters whose Adam step the SH adjoint applies (``FUSE_SH_ADAM``): the SH

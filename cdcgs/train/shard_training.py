@@ -68,7 +68,6 @@ from .graph import GraphSteps
 from .interrupt import Interrupted
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer
-from .optim import FusedAdam
 from .shards import rasterize_shard
 from .strategies import make_strategy
 from .strategy import StepContext
@@ -194,11 +193,6 @@ class ShardGraphSteps(GraphSteps):
         for loss, image_psnr, _ in seen:
             trainer.guard.record(loss, image_psnr, halt)
         self._adam(None, halt)  # of the gradients' mean over the batch: gradient_scale
-
-    def gradient_scale(self) -> float:
-        """1 / the batch: the gradients are the sum over the batch's views, and Adam steps their
-        mean, the division folded into its rates (no pass over the slice's gradients)."""
-        return 1.0 / self.batch
 
 
 # NCCL registers the buffers of a captured graph's transfers unless told not to: with the sharded
@@ -396,7 +390,7 @@ class ShardedTrainer(Trainer):
         # Adam steps the mean over the batch's views of the gradients' sum: FusedAdam with the
         # division folded into its rates (as the replayed steps), another Adam after a division.
         adam = {} if halt is None else {"halt": halt}
-        if isinstance(self.optimizer, FusedAdam):
+        if self.folds_batch_mean:
             adam["gradient_scale"] = 1.0 / count
         elif count != 1:
             for group in self.optimizer.param_groups:

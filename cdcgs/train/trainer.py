@@ -46,6 +46,7 @@ from .lookahead import READ_EVERY, Halted, Lookahead, halt_refusal
 from .loss import fused_photometric_loss, mse_to_psnr, photometric_loss, psnr
 from .model import GaussianModel
 from .ops import load_optimizer_state, make_optimizer, set_hyperparameters
+from .optim import FusedAdam
 from .schedules import dash_schedule, position_lr
 from .strategies import make_strategy
 from .strategy import StepContext
@@ -779,11 +780,13 @@ class Trainer:
                 if self.statistics is not None:
                     # the new Gaussians' statistics
                     self.statistics.begin(self.strategy_state, halts=self.lookahead is not None)
-        halt = {} if self.lookahead is None else {"halt": self.lookahead.halt}
+        adam = {} if self.lookahead is None else {"halt": self.lookahead.halt}
+        if self.folds_batch_mean and count != 1:  # the gradients are the views' sums (_reduce)
+            adam["gradient_scale"] = 1.0 / count
         if config.optimizer == "selective":
-            self.optimizer.step(self._visible if self._visible.shape[0] == self.model.num else None, **halt)
+            self.optimizer.step(self._visible if self._visible.shape[0] == self.model.num else None, **adam)
         else:
-            self.optimizer.step(**halt)
+            self.optimizer.step(**adam)
         self.optimizer.zero_grad(set_to_none=True)
         self.strategy.after_step(self._context(last), self.strategy_state)
         if timed:
@@ -964,6 +967,14 @@ class Trainer:
         return loss, image_psnr, ctx
 
     @property
+    def folds_batch_mean(self) -> bool:
+        """Whether a step of several views hands Adam its views' summed gradients and the division
+        by their count as ``gradient_scale`` (folded into the moments' rates: no pass over the
+        gradients), as :class:`cdcgs.train.optim.FusedAdam` takes it; another optimizer
+        (``--optimizer torch-adam``) gets the mean."""
+        return isinstance(self.optimizer, FusedAdam)
+
+    @property
     def _exchanges_colours(self) -> bool:
         return self.ranks.distributed and self.config.dist_exchange == "colours"
 
@@ -1013,8 +1024,10 @@ class Trainer:
             )
             total_dc = dc if total_dc is None else total_dc + dc
             total_rest = rest if total_rest is None else total_rest + rest
-        params["sh_dc"].grad = total_dc.div_(count)
-        params["sh_rest"].grad = total_rest.div_(count)
+        if not self.folds_batch_mean:
+            total_dc.div_(count)
+            total_rest.div_(count)
+        params["sh_dc"].grad, params["sh_rest"].grad = total_dc, total_rest
         return 4 * gathered.numel()
 
     def _loss(self, image: torch.Tensor, photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1063,21 +1076,23 @@ class Trainer:
         flags: torch.Tensor | None = None,
         cameras: list | None = None,
     ) -> None:
-        """Average the step's gradients over its ``count`` views (on several processes: one flat
+        """Sum the step's gradients over its ``count`` views (on several processes: one flat
         all-reduce that also carries the statistics' additions, the visible masks and the flags:
         a pending signal, a render that met NaN and, with --sync-free, the halt). ``flags``: those
         three on the device already (a replayed step's); by default set from the host's state.
         With ``--dist-exchange colours`` the spherical harmonics' gradients stay out of the
         all-reduce and are rebuilt from the views' colour gradients (``cameras``: the step's views'
-        cameras, in batch order)."""
+        cameras, in batch order). The sums are divided by ``count`` unless Adam takes the division
+        (``folds_batch_mean``)."""
         params = [group["params"][0] for group in self.optimizer.param_groups]
         colours = self._exchanges_colours
         if colours:
             sh = {id(self.model.params[name]) for name in ("sh_dc", "sh_rest")}
             params = [p for p in params if id(p) not in sh]
         self._visible = visible
+        divide = not self.folds_batch_mean
         if not self.ranks.distributed:
-            self.ranks.reduce_gradients(params, count)
+            self.ranks.reduce_gradients(params, count, divide=divide)
             return
         if flags is None:
             # Set on the device: torch.tensor(..., device=cuda) copies from pageable memory, which
@@ -1101,7 +1116,7 @@ class Trainer:
             self._wait_ms = (time.perf_counter() - start) * 1e3
             self._reduce_bytes = 4 * (sum(p.numel() for p in params) + sum(e.numel() for e in extras))
             start = time.perf_counter()
-        reduced = self.ranks.reduce_gradients(params, count, extras)
+        reduced = self.ranks.reduce_gradients(params, count, extras, divide=divide)
         if visible is not None:
             self._visible = reduced.pop() > 0
         self._flags.copy_(reduced.pop())  # one buffer: a replayed step writes the same one
