@@ -4,7 +4,7 @@
 A step's host work (Python, torch's autograd, some sixty launches) takes about as long as its
 kernels below a million Gaussians, so the GPU waits for the host. With ``--cuda-graph`` the step
 (for each of the process's views of the batch: render into slots, the note of its count, the loss,
-the backward pass; then the strategy's statistics, the average over the batch (on shards folded
+the backward pass; then the strategy's statistics, the average over the batch (folded
 into Adam's rates), the guard's records, one Adam launch; in a step of one view on one process the
 SH coefficients' Adam step is taken by their adjoint instead, ``FUSE_SH_ADAM``) is captured once
 under ``torch.cuda.graph``, Warp told of the capture, and replayed: per step the host only picks the
@@ -374,7 +374,7 @@ class GraphSteps:
     def _body(self) -> None:
         """The step's device work, from ``where`` and the rates table; reads nothing back. As
         :meth:`cdcgs.train.trainer.Trainer.train_step`: each of the process's views rendered and
-        back-propagated in turn, the strategy's statistics after the last, the gradients averaged
+        back-propagated in turn, the strategy's statistics after the last, the gradients summed
         over the batch (on several processes in the all-reduce), the guard's records, Adam."""
         trainer = self.trainer
         config = trainer.config
@@ -412,7 +412,7 @@ class GraphSteps:
                 visible = info.visible if visible is None else visible | info.visible
         for _, _, ctx in seen:
             trainer.strategy.observe(ctx, trainer.strategy_state)
-        if distributed or self.batch > 1:  # the step's all-reduce and average, as Trainer.train_step's
+        if distributed or self.batch > 1:  # the step's all-reduce and sums, as Trainer.train_step's
             flags = torch.cat([self.where[self._flag_entry : self._views_entry].float(), lookahead.halt.float()])
             cameras = self._batch_cameras(cameras, prepared) if trainer._exchanges_colours else None
             trainer._reduce(self.batch, visible, timed=False, flags=flags if distributed else None, cameras=cameras)

@@ -718,7 +718,7 @@ class Trainer:
     def train_step(self) -> dict:
         """One step: ``--batch-size`` views (this process's share of them), each rendered, scored
         and back-propagated with the strategy's per-view hooks; the gradients and statistics
-        summed over the views and the processes and averaged; the strategy's refinements of the
+        summed over the views and the processes (Adam steps their mean); the strategy's refinements of the
         step's iterations; one optimizer step. Reads nothing back from the device itself (the
         render reads its intersection count) except where the strategy is about to change the
         Gaussians. Returns the strategy's logs of the step merged (each also in ``step_events``
