@@ -10,7 +10,9 @@ median of ``--repeats`` rounds after two untimed ones:
 
 - ``pack``: the flat buffer alone (``torch.cat``, as ``Ranks.reduce_gradients`` builds it);
 - ``all_reduce``: ``all_reduce`` of a buffer of that size alone;
-- ``exchange``: ``Ranks.reduce_gradients`` whole (pack, all-reduce, division, gradients back);
+- ``exchange``: ``Ranks.reduce_gradients`` whole (pack, all-reduce, gradients back), as a training
+  with FusedAdam calls it: without the division by the batch, which Adam's rates take (before
+  63126e0 it was timed with the division);
 - ``shards forward`` and ``shards back``: the exchanges of ``--dist-mode shards``' render alone
   (:func:`cdcgs.train.shards._swap`, the point-to-point transfers of one group), with the N
   Gaussians split evenly over the processes: forward, each process sends every other process the 12
@@ -85,9 +87,9 @@ def measure(ranks: Ranks, device: torch.device, n: int, repeats: int) -> dict:
     flat = torch.cat(pieces)  # real values: uninitialised memory may hold denormals, slow on a CPU
 
     def exchange():
-        for p, g in zip(params, grads):  # the step's gradients again (the exchange divides them)
+        for p, g in zip(params, grads):  # the step's gradients again (the exchange makes them views of its buffer)
             p.grad = g.clone()
-        ranks.reduce_gradients(params, ranks.world, extras)
+        ranks.reduce_gradients(params, ranks.world, extras, divide=False)
 
     row = {"gaussians": n, "bytes": 4 * size}
     row["pack_ms"] = timed(device, lambda: torch.cat(pieces), repeats)

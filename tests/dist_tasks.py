@@ -28,17 +28,18 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-# What the fork server imports before it forks any process: nothing here may start a thread or
-# initialise CUDA (torch and Warp initialise their devices at first use, in each process).
+# What the fork server imports before it forks any process: nothing here may initialise CUDA (torch
+# and Warp initialise their devices at first use, in each process) or start a thread that a fork
+# cannot survive (numpy's OpenBLAS starts its threads at import and handles a fork itself).
 PRELOAD = ["torch", "torch.distributed", "torch._dynamo", "warp", "cdcgs.train", "cdcgs.train.shard_training"]
-PRELOAD += ["matplotlib.pyplot", "dist_tasks"]
+PRELOAD += ["matplotlib.pyplot"]
 
 
-def _entry(task: str, rank: int, world: int, port: int, result_path: str, kwargs: dict, caller: tuple) -> None:
-    environment, cwd = caller  # the fork server's are those of the session's first launch
+def _entry(task: str, rank: int, world: int, port: int, result_path: str, kwargs: dict, environment: dict) -> None:
+    # the caller's environment now: the fork server's is that of the session's first launch
+    # (multiprocessing passes the working directory and sys.path itself)
     os.environ.clear()
     os.environ.update(environment)
-    os.chdir(cwd)
     os.environ.update(
         {
             "RANK": str(rank),
@@ -69,10 +70,10 @@ def run_ranks(task: str, world: int, tmp_path, timeout: float = 60.0, **kwargs) 
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(PRELOAD)  # read when the server starts: the first launch
     port = free_port()
-    caller = (dict(os.environ), os.getcwd())
+    environment = dict(os.environ)
     paths = [os.path.join(str(tmp_path), f"rank{rank}_{task}_{port}.pkl") for rank in range(world)]
     processes = [
-        context.Process(target=_entry, args=(task, rank, world, port, paths[rank], kwargs, caller))
+        context.Process(target=_entry, args=(task, rank, world, port, paths[rank], kwargs, environment))
         for rank in range(world)
     ]
     for p in processes:

@@ -1004,8 +1004,9 @@ class Trainer:
     def _rebuild_sh_gradients(self, count: int, cameras) -> int:
         """``--dist-exchange colours``: gather every process's colour gradients of the step's
         ``count`` views (``cameras``, in batch order) and set the spherical harmonics' gradients to
-        the mean of the views' SH adjoints, summed in batch order on every process (so that all get
-        the same bits). Returns the bytes gathered."""
+        the sum of the views' SH adjoints in batch order on every process (so that all get the same
+        bits), divided by ``count`` unless Adam takes the division (``folds_batch_mean``). Returns
+        the bytes gathered."""
         world, num = self.ranks.world, self.model.num
         slots = -(-count // world)  # views per process, the last ones padded with zeros
         grads, self._colour_grads = self._colour_grads, []
