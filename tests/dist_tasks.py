@@ -347,6 +347,21 @@ def train(
     }
 
 
+def surroundings(rank, world, names):
+    """What a rank finds around it: the values of the environment variables ``names``, its
+    working directory, its rank's variables, and whether its process is new (no CUDA or Warp
+    runtime initialised before the task)."""
+    import warp._src.context as warp_context
+
+    return {
+        "environment": {name: os.environ.get(name) for name in names},
+        "cwd": os.getcwd(),
+        "rank": (os.environ["RANK"], os.environ["WORLD_SIZE"]),
+        "pid": os.getpid(),
+        "warp_runtime": warp_context.runtime is not None,
+    }
+
+
 def failing_setup(rank, world, scene, out):
     """Rank 1 cannot read its scene; rank 0 is fine."""
     from cdcgs.errors import InputError

@@ -460,6 +460,22 @@ def test_a_batch_smaller_than_the_processes_is_refused(small_scene, tmp_path):
     assert "--batch-size 1" in outs[0]["message"]
 
 
+def test_ranks_take_the_callers_environment_and_directory_of_the_moment(tmp_path, monkeypatch):
+    """The tests' ranks fork from a fork server that keeps the environment of the session's first
+    launch: each launch still hands its ranks the caller's environment and working directory as
+    they are then (a variable set, one removed, a new directory), and each rank is a new process."""
+    ok(run_ranks("surroundings", 2, tmp_path, names=[]))  # the fork server runs from here on
+    monkeypatch.setenv("CDCGS_TEST_SET_LATER", "later")
+    monkeypatch.delenv("HOME", raising=False)
+    monkeypatch.chdir(tmp_path)
+    first, second = ok(run_ranks("surroundings", 2, tmp_path, names=["CDCGS_TEST_SET_LATER", "HOME"]))
+    for rank, seen in enumerate((first, second)):
+        assert seen["environment"] == {"CDCGS_TEST_SET_LATER": "later", "HOME": None}
+        assert seen["cwd"] == str(tmp_path) and seen["rank"] == (str(rank), "2")
+        assert seen["pid"] != os.getpid() and not seen["warp_runtime"]
+    assert first["pid"] != second["pid"]
+
+
 def test_torchrun_launches_the_command_line(small_scene, tmp_path):
     out = tmp_path / "run"
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "cdcgs"]
